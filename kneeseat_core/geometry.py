@@ -1,0 +1,166 @@
+"""Rigid transforms, quaternions and the knee attitude decomposition.
+
+Poses are (4, 4) float64 homogeneous matrices named `a_from_b` (they map points in b into
+a). Quaternions are (x, y, z, w), ROS order, canonicalised to w >= 0; they exist only at
+the ROS boundary, in table files and in interpolation. Everything is vectorised over a
+leading axis where it says so.
+
+Knee attitude (DESIGN.md): the orientation of the moving body in the reference frame is
+    R = Rot(flexion_axis, flexion) @ Rot(varus_axis, varus) @ Rot(long_axis, rotation)
+with the three axes given in the reference frame at neutral.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ConfigError
+from .typed import Floats, Pose, Quat, Vec3
+
+__all__ = ['Tolerances', 'TOL', 'unit', 'rotation_about', 'pose_from', 'rotation_angle',
+           'quat_from_matrix', 'matrix_from_quat', 'KneeAxes']
+
+
+@dataclass(frozen=True, slots=True)
+class Tolerances:
+    """Every numeric tolerance of the project, in one place."""
+
+    zero_length: float = 1e-12     # below this a vector has no direction
+    unit_norm: float = 1e-6        # |1 - |q|| accepted as a unit quaternion / axis
+    orthogonal: float = 1e-3       # |cos| accepted between axes declared orthogonal
+    torque: float = 1e-12          # |torque| (m) below this counts as zero (no sign)
+
+
+TOL = Tolerances()
+
+
+def unit(vector: Floats, name: str = 'vector') -> Vec3:
+    """Return `vector` (3,) scaled to unit length.
+
+    Raises:
+        ConfigError: the vector has (near) zero length or is not finite.
+    """
+    v = np.asarray(vector, dtype=np.float64).reshape(3)
+    norm = float(np.linalg.norm(v))
+    if not np.isfinite(norm) or norm < TOL.zero_length:
+        raise ConfigError(f'{name} {v.tolist()} has no direction (zero length or not finite); '
+                          'give a non-zero vector such as 0,-1,0')
+    return v / norm
+
+
+def rotation_about(axis: Vec3, angle_rad: float | Floats) -> Floats:
+    """Rotation matrices about a unit `axis` (3,) by `angle_rad` (scalar or (n,)).
+
+    Returns:
+        (3, 3) for a scalar angle, (n, 3, 3) for an array of angles (Rodrigues' formula).
+    """
+    k = np.asarray(axis, dtype=np.float64)
+    a = np.asarray(angle_rad, dtype=np.float64)
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    s, c = np.sin(a)[..., None, None], np.cos(a)[..., None, None]
+    return np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+
+
+def pose_from(rotation: Floats, translation: Floats) -> Pose:
+    """(4, 4) pose from a (3, 3) rotation and a (3,) translation in metres."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = translation
+    return pose
+
+
+def rotation_angle(a: Floats, b: Floats) -> float:
+    """Angle (rad) of the rotation taking (3, 3) rotation `a` to `b`."""
+    cos = (np.trace(a.T @ b) - 1.0) / 2.0
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def quat_from_matrix(rotation: Floats) -> Floats:
+    """Unit quaternions (x, y, z, w), w >= 0, of rotation matrices (..., 3, 3)."""
+    r = np.asarray(rotation, dtype=np.float64)
+    m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+    # Each of the four candidates is well conditioned where its component is largest.
+    cand = np.stack([
+        np.stack([1 + m00 - m11 - m22, r[..., 1, 0] + r[..., 0, 1],
+                  r[..., 0, 2] + r[..., 2, 0], r[..., 2, 1] - r[..., 1, 2]], -1),
+        np.stack([r[..., 1, 0] + r[..., 0, 1], 1 - m00 + m11 - m22,
+                  r[..., 2, 1] + r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0]], -1),
+        np.stack([r[..., 0, 2] + r[..., 2, 0], r[..., 2, 1] + r[..., 1, 2],
+                  1 - m00 - m11 + m22, r[..., 1, 0] - r[..., 0, 1]], -1),
+        np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0],
+                  r[..., 1, 0] - r[..., 0, 1], 1 + m00 + m11 + m22], -1),
+    ], -2)                                                          # (..., 4, 4)
+    pick = np.argmax(np.stack([m00, m11, m22, m00 + m11 + m22], -1), axis=-1)
+    q = np.take_along_axis(cand, pick[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:4] < 0.0, -q, q)
+
+
+def matrix_from_quat(quat_xyzw: Floats) -> Floats:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4) in (x, y, z, w) order.
+
+    The quaternion is normalised first; callers validate user input beforehand.
+    """
+    q = np.asarray(quat_xyzw, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class KneeAxes:
+    """The three attitude axes of a joint, unit vectors in the reference frame at neutral.
+
+    Patent: X flexion, Z varus, Y long axis. The TKA knee frame (X anterior, Y superior,
+    Z lateral) therefore uses flexion = Z, varus = X, long = Y.
+    """
+
+    flexion: Vec3
+    varus: Vec3
+    long: Vec3
+
+    @classmethod
+    def from_vectors(cls, flexion: Floats, varus: Floats, long: Floats) -> KneeAxes:
+        """Normalise and check three axes.
+
+        Raises:
+            ConfigError: an axis is zero, or two axes are not orthogonal.
+        """
+        f, v, l_ = unit(flexion, 'flexion axis'), unit(varus, 'varus axis'), unit(long, 'long axis')
+        for (na, a), (nb, b) in (((('flexion', f), ('varus', v))), (('flexion', f), ('long', l_)),
+                                 (('varus', v), ('long', l_))):
+            if abs(float(a @ b)) > TOL.orthogonal:
+                raise ConfigError(f'{na} axis {a.round(4).tolist()} and {nb} axis '
+                                  f'{b.round(4).tolist()} are not orthogonal '
+                                  f'(cos = {float(a @ b):.3f}); give three perpendicular axes')
+        return cls(f, v, l_)
+
+    def _basis(self) -> tuple[Floats, float]:
+        """Right-handed basis (3, 3) [flexion, varus, ±long] and the sign applied to long."""
+        sign = 1.0 if float(np.cross(self.flexion, self.varus) @ self.long) > 0 else -1.0
+        return np.stack([self.flexion, self.varus, sign * self.long], axis=1), sign
+
+    def orientation(self, flexion_rad: float | Floats, varus_rad: float | Floats,
+                    rotation_rad: float | Floats = 0.0) -> Floats:
+        """R = Rot(flexion) @ Rot(varus) @ Rot(long, rotation): (3, 3) or (n, 3, 3)."""
+        return (rotation_about(self.flexion, flexion_rad)
+                @ rotation_about(self.varus, varus_rad)
+                @ rotation_about(self.long, rotation_rad))
+
+    def decompose(self, rotation: Floats) -> tuple[Floats, Floats, Floats]:
+        """Inverse of `orientation`: (flexion, varus, rotation) in rad from (..., 3, 3).
+
+        Varus is returned in [-pi/2, pi/2]; near varus = ±pi/2 flexion and rotation are
+        not separable (gimbal lock), far outside any knee's range.
+        """
+        basis, sign = self._basis()
+        r = basis.T @ np.asarray(rotation, dtype=np.float64) @ basis   # = Rx(a) Ry(b) Rz(c)
+        flexion = np.arctan2(-r[..., 1, 2], r[..., 2, 2])
+        varus = np.arcsin(np.clip(r[..., 0, 2], -1.0, 1.0))
+        spin = np.arctan2(-r[..., 0, 1], r[..., 0, 0]) * sign
+        return flexion, varus, spin

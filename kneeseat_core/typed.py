@@ -1,0 +1,13 @@
+"""Array aliases used in signatures. Shapes and units go in docstrings."""
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ['Floats', 'Pose', 'Poses', 'Vec3', 'Quat']
+
+Floats = NDArray[np.float64]
+Pose = NDArray[np.float64]    # (4, 4) homogeneous, a_from_b, metres
+Poses = NDArray[np.float64]   # (n, 4, 4)
+Vec3 = NDArray[np.float64]    # (3,)
+Quat = NDArray[np.float64]    # (4,) x, y, z, w (ROS order), w >= 0

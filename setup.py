@@ -1,0 +1,34 @@
+"""ament_python package kneeseat_ros; also ships the ROS-free core, kneeseat_core."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'kneeseat_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(include=['kneeseat_core', 'kneeseat_core.*',
+                                    'kneeseat_ros', 'kneeseat_ros.*']),
+    package_data={'kneeseat_core': ['py.typed', 'data/*']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        (f'share/{PACKAGE}', ['package.xml']),
+        (f'share/{PACKAGE}/config', glob('config/*.yaml')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='kneeseat developers',
+    maintainer_email='kneeseat@example.org',
+    description='Collision-detection motion modeling of rigid bones (US 6,708,142) '
+                'and a ROS 2 server for the resulting pose tables.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'kneeseat = kneeseat_core.cli:main',
+            'table_server = kneeseat_ros.table_server:main',
+            'replay = kneeseat_ros.replay:main',
+            'make_bag = kneeseat_ros.make_bag:main',
+        ],
+    },
+)
