@@ -1,0 +1,97 @@
+"""Rigid bodies for python-fcl and the two collision queries the settle needs.
+
+A `RigidBody` is built once per mesh: an fcl BVH plus, per triangle, the centre and the
+outward normal taken as the normalised mean of its three vertex normals (the patent's
+choice). A `CollisionPair` holds the fixed reference and the moving body and answers:
+- `collides(pose)`: boolean, stops at the first overlapping triangle pair (dichotomy);
+- `contacts(pose)`: every overlapping triangle of the reference (contact analysis).
+Poses are (4, 4) `fixed_from_moving`; the fixed body sits at identity.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import fcl
+import numpy as np
+import trimesh
+
+from .typed import Floats, Pose
+
+__all__ = ['RigidBody', 'CollisionPair']
+
+# Contacts a single query may report; a settle's contact patch is far smaller.
+_MAX_CONTACTS = 100_000
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RigidBody:
+    """A triangle mesh ready for collision queries (metres, the body's own frame)."""
+
+    mesh: trimesh.Trimesh
+    bvh: fcl.BVHModel
+    centres: Floats     # (n, 3) triangle centres, m
+    normals: Floats     # (n, 3) unit outward normals at the centres (mean vertex normals)
+
+    @classmethod
+    def from_mesh(cls, mesh: trimesh.Trimesh) -> RigidBody:
+        """Build the BVH and the per-triangle centres and normals of `mesh`."""
+        vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+        faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(vertices), len(faces))
+        bvh.addSubModel(vertices, faces)
+        bvh.endModel()
+        normals = np.asarray(mesh.vertex_normals)[faces].mean(axis=1)
+        lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+        # A triangle whose vertex normals cancel (a knife edge) keeps its face normal.
+        flat = lengths[:, 0] < 1e-9
+        normals[flat] = np.asarray(mesh.face_normals)[flat]
+        lengths[flat] = 1.0
+        return cls(mesh, bvh, np.asarray(mesh.triangles_center), normals / lengths)
+
+    @property
+    def vertices(self) -> Floats:
+        """(n, 3) vertices, m, body frame."""
+        return np.asarray(self.mesh.vertices)
+
+
+@dataclass(slots=True, eq=False)
+class CollisionPair:
+    """The fixed reference and the moving body, with query counters."""
+
+    fixed: RigidBody
+    moving: RigidBody
+    checks: int = 0             # queries answered so far
+    fcl_s: float = 0.0          # wall time spent inside python-fcl
+    _fixed_obj: fcl.CollisionObject = field(init=False, repr=False)
+    _moving_obj: fcl.CollisionObject = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._fixed_obj = fcl.CollisionObject(self.fixed.bvh, fcl.Transform())
+        self._moving_obj = fcl.CollisionObject(self.moving.bvh, fcl.Transform())
+
+    def _query(self, pose: Pose, request: fcl.CollisionRequest) -> fcl.CollisionResult:
+        self._moving_obj.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))
+        result = fcl.CollisionResult()
+        start = time.perf_counter()
+        fcl.collide(self._moving_obj, self._fixed_obj, request, result)
+        self.fcl_s += time.perf_counter() - start
+        self.checks += 1
+        return result
+
+    def collides(self, pose: Pose) -> bool:
+        """True if the moving body at `pose` overlaps the fixed body."""
+        return bool(self._query(pose, fcl.CollisionRequest()).is_collision)
+
+    def contacts(self, pose: Pose) -> Floats:
+        """Indices (k,) of the reference triangles overlapping the moving body at `pose`.
+
+        fcl reports each contact as (o1, b1, o2, b2); which side is the reference is
+        decided by object identity, never by argument order.
+        """
+        request = fcl.CollisionRequest(num_max_contacts=_MAX_CONTACTS, enable_contact=True)
+        result = self._query(pose, request)
+        fixed_geom = self.fixed.bvh
+        ids = [c.b1 if c.o1 is fixed_geom else c.b2 for c in result.contacts]
+        return np.unique(np.asarray(ids, dtype=np.int64))
