@@ -1,0 +1,555 @@
+"""Session logs: rosbag2-style bag directories of MCAP files, and their recovery.
+
+A bag is a directory `<name>/` holding `<name>_0.mcap`, `<name>_1.mcap`, ... and a
+`metadata.yaml` (rosbag2 version 9), so `ros2 bag`, rosbags, Foxglove and the `mcap` CLI
+read it. Each MCAP file has profile `ros2`, one `ros2msg` schema per type (the full `.msg`
+text with dependencies, see `kneeseat_ros.msgdefs`), one `cdr` channel per topic with the
+channel metadata `offered_qos_profiles` and `topic_type_hash`, zstd chunks with message
+indexes, and a Metadata record named 'kneeseat' with the table's SHA-256 and path.
+
+Nothing here reads a wall clock: the caller gives every time stamp, so the same input
+gives the same bytes (the shipped demo bag relies on it).
+
+Failure policy: a directory that cannot be created or written raises `RecorderError` at
+construction. After that `write` never raises on an I/O error: it records the error in
+`BagRecorder.error`, stops writing and returns, so a node keeps serving. A process killed
+mid-write leaves a file without its summary; `recover` rewrites every readable message
+into a new, complete bag.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import threading
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.exceptions import McapError
+from mcap.records import Channel, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import __version__ as MCAP_VERSION, CompressionType, IndexType, Writer
+from rclpy.qos import QoSProfile
+from rclpy.serialization import serialize_message
+import yaml
+
+from kneeseat_core.errors import KneeseatError
+
+from .msgdefs import message_definition, MessageTypeError, type_hash
+
+__all__ = ['RecorderError', 'BagRecorder', 'TopicSpec', 'RecoveryReport', 'qos_to_dicts',
+           'read_readable', 'recover', 'DEFAULT_QOS', 'METADATA_NAME']
+
+PROFILE = 'ros2'
+SCHEMA_ENCODING = 'ros2msg'
+MESSAGE_ENCODING = 'cdr'
+METADATA_NAME = 'kneeseat'
+LIBRARY = f'kneeseat_ros.recorder; mcap-python/{MCAP_VERSION}'
+BAG_VERSION = 9
+CHUNK_SIZE_BYTES = 768 * 1024      # rosbag2's default MCAP chunk size
+MESSAGE_RECORD_OVERHEAD = 31       # opcode, length, channel, sequence, two stamps (bytes)
+DEFAULT_QOS = QoSProfile(depth=10)  # rclpy's default publisher QoS
+_SPLIT_RE = re.compile(r'_(\d+)\.mcap$')
+
+
+class RecorderError(KneeseatError):
+    """A bag directory cannot be created or written, or a topic cannot be recorded."""
+
+
+def _duration_dict(ns: int) -> dict[str, int]:
+    return {'sec': ns // 1_000_000_000, 'nsec': ns % 1_000_000_000}
+
+
+def qos_to_dicts(qos: QoSProfile) -> list[dict[str, Any]]:
+    """The offered QoS of one publisher as rosbag2 Jazzy (metadata v9) writes it.
+
+    Returns:
+        A one-element list (rosbag2 stores one entry per publisher) of a dict with string
+        policy names (`keep_last`, `reliable`, `volatile`, `automatic`, ...) and durations
+        as `{sec, nsec}`.
+    """
+    return [{
+        'history': qos.history.name.lower(),
+        'depth': int(qos.depth),
+        'reliability': qos.reliability.name.lower(),
+        'durability': qos.durability.name.lower(),
+        'deadline': _duration_dict(qos.deadline.nanoseconds),
+        'lifespan': _duration_dict(qos.lifespan.nanoseconds),
+        'liveliness': qos.liveliness.name.lower(),
+        'liveliness_lease_duration': _duration_dict(qos.liveliness_lease_duration.nanoseconds),
+        'avoid_ros_namespace_conventions': bool(qos.avoid_ros_namespace_conventions),
+    }]
+
+
+def _yaml(data: Any) -> str:
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
+
+
+@dataclass(frozen=True, slots=True)
+class TopicSpec:
+    """Everything a bag stores about one topic."""
+
+    topic: str
+    msg_type: str                   # 'pkg/msg/Type'
+    definition: str                 # ros2msg schema text, dependencies included
+    type_hash: str                  # 'RIHS01_...', '' if unknown
+    qos: tuple[dict[str, Any], ...]  # offered QoS profiles (v9 dicts)
+
+
+@dataclass(slots=True)
+class _FileStats:
+    path: Path
+    start_ns: int = -1
+    end_ns: int = -1
+    count: int = 0
+
+
+@dataclass(slots=True)
+class _OpenFile:
+    stats: _FileStats
+    stream: BinaryIO
+    writer: Writer
+    channels: dict[str, int] = field(default_factory=dict)    # topic -> channel id
+    schemas: dict[str, int] = field(default_factory=dict)     # type -> schema id
+    last_tell: int = 0
+    pending_bytes: int = 0         # uncompressed bytes in the open chunk (estimate)
+    last_flush_ns: int = -1
+
+
+class BagRecorder:
+    """Writes one rosbag2-style bag directory (metadata.yaml + .mcap files).
+
+    Thread-safe: `write` may be called from several executor threads. Do not call `close`
+    from a signal handler that may interrupt `write`; let the handler stop the spin and
+    close afterwards (rclpy's own SIGINT/SIGTERM handling does exactly that).
+    """
+
+    def __init__(self, directory: Path, *, split_size_bytes: int = 0,
+                 split_duration_s: float = 0.0, table_sha256: str = '',
+                 table_path: str = '', chunk_size_bytes: int = CHUNK_SIZE_BYTES,
+                 flush_interval_s: float = 5.0) -> None:
+        """Create the directory and its first MCAP file.
+
+        Args:
+            directory: the bag directory; must not exist yet or be empty. Files are named
+                `<directory name>_<N>.mcap`.
+            split_size_bytes: start a new file once a file reaches this size (0 = never).
+            split_duration_s: start a new file once a file spans this much log time
+                (0 = never).
+            table_sha256: the served table's `arrays_sha256`, stored in every file.
+            table_path: the served table's path, stored in every file.
+            chunk_size_bytes: uncompressed size at which a chunk is closed and written.
+            flush_interval_s: also close the open chunk once it spans this much log time,
+                bounding what a crash can lose (0 = by size only).
+        Raises:
+            RecorderError: the directory is not empty, or cannot be created or written, or
+                a size/duration is negative.
+        """
+        self._dir = Path(directory)
+        for name, value in (('split_size_bytes', split_size_bytes),
+                            ('split_duration_s', split_duration_s),
+                            ('chunk_size_bytes', chunk_size_bytes),
+                            ('flush_interval_s', flush_interval_s)):
+            if not value >= 0:
+                raise RecorderError(f'{name}={value} for bag {self._dir} is negative; '
+                                    'give 0 (off) or a positive value')
+        self._split_size = int(split_size_bytes)
+        self._split_ns = int(round(split_duration_s * 1e9))
+        self._chunk_size = int(chunk_size_bytes)
+        self._flush_ns = int(round(flush_interval_s * 1e9))
+        self._kneeseat_meta = {'table_sha256': str(table_sha256), 'table_path': str(table_path)}
+        self._lock = threading.Lock()
+        self._specs: dict[str, TopicSpec] = {}
+        self._topic_counts: dict[str, int] = {}
+        self._files: list[_FileStats] = []
+        self._open: _OpenFile | None = None
+        self._split_pending = False
+        self._error: str | None = None
+        self._closed = False
+        self._count = 0
+        try:
+            if self._dir.exists() and (not self._dir.is_dir() or any(self._dir.iterdir())):
+                raise RecorderError(f'bag directory {self._dir} already exists and is not '
+                                    'empty; choose a new directory or remove the old bag')
+            self._dir.mkdir(parents=True, exist_ok=True)
+            self._open_file()
+        except OSError as err:
+            raise RecorderError(f'cannot create bag directory {self._dir}: '
+                                f'{err.strerror or err}; choose a writable directory with '
+                                'free space') from None
+
+    # -- public API -----------------------------------------------------------------------
+    @property
+    def directory(self) -> Path:
+        """The bag directory."""
+        return self._dir
+
+    @property
+    def error(self) -> str | None:
+        """Why recording stopped (one line), or None while it works."""
+        return self._error
+
+    @property
+    def message_count(self) -> int:
+        """Messages written so far, over all files."""
+        return self._count
+
+    @property
+    def paths(self) -> list[Path]:
+        """The MCAP files written so far, in order."""
+        return [f.path for f in self._files]
+
+    def add_topic(self, topic: str, msg_type: str, qos: QoSProfile | None = None) -> None:
+        """Declare a topic before writing to it; idempotent per topic.
+
+        Args:
+            topic: the topic name, e.g. '/knee/pose'.
+            msg_type: like 'geometry_msgs/msg/PoseStamped'.
+            qos: the QoS offered by its publisher (rclpy's default profile if None).
+        Raises:
+            RecorderError: the type is unknown, or the topic was added with another type.
+        """
+        try:
+            spec = TopicSpec(topic, msg_type, message_definition(msg_type), type_hash(msg_type),
+                             tuple(qos_to_dicts(qos if qos is not None else DEFAULT_QOS)))
+        except MessageTypeError as err:
+            raise RecorderError(f'cannot record {topic}: {err}') from None
+        self.add_spec(spec)
+
+    def add_spec(self, spec: TopicSpec) -> None:
+        """Declare a topic from a ready `TopicSpec` (used by `recover`); idempotent per topic.
+
+        Raises:
+            RecorderError: the topic was already added with another type.
+        """
+        with self._lock:
+            old = self._specs.get(spec.topic)
+            if old is not None:
+                if old.msg_type != spec.msg_type:
+                    raise RecorderError(f'topic {spec.topic} is already recorded as '
+                                        f'{old.msg_type}, not {spec.msg_type}; use one type '
+                                        'per topic')
+                return
+            self._specs[spec.topic] = spec
+            self._topic_counts[spec.topic] = 0
+            if self._open is not None and self._error is None:
+                self._guard(self._register, self._open, spec)
+
+    def write(self, topic: str, message: Any, log_time_ns: int, publish_time_ns: int) -> None:
+        """Serialise an rclpy message and append it to the bag.
+
+        Never raises on an I/O error: sets `error`, stops writing and returns.
+
+        Args:
+            topic: a topic declared with `add_topic`.
+            message: an rclpy message instance of the topic's type.
+            log_time_ns: receive time (ns, node clock).
+            publish_time_ns: send time (ns), e.g. the header stamp.
+        Raises:
+            RecorderError: the topic was never added.
+        """
+        self.write_raw(topic, serialize_message(message), log_time_ns, publish_time_ns)
+
+    def write_raw(self, topic: str, data: bytes, log_time_ns: int,
+                  publish_time_ns: int) -> None:
+        """Append already CDR-serialised bytes; same contract as `write`."""
+        with self._lock:
+            if topic not in self._specs:
+                raise RecorderError(f'topic {topic} was not added to bag {self._dir}; call '
+                                    'add_topic(topic, type) before writing')
+            if self._closed or self._error is not None:
+                return
+            log_ns, pub_ns = int(log_time_ns), int(publish_time_ns)
+            self._guard(self._write_locked, topic, data, log_ns, pub_ns)
+
+    def split(self) -> None:
+        """Start a new file before the next message (no-op if the current one is empty)."""
+        with self._lock:
+            if self._open is not None and self._open.stats.count:
+                self._split_pending = True
+
+    def close(self) -> None:
+        """Finish the open MCAP file and write metadata.yaml; idempotent, never raises OSError.
+
+        An I/O error here is recorded in `error`.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            if self._open is not None and self._error is None:
+                self._guard(self._finish_file)
+            self._open = None
+            self._guard(self._write_metadata)
+
+    def __enter__(self) -> BagRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- internals (called with the lock held) ---------------------------------------------
+    def _guard(self, func: Any, *args: Any) -> None:
+        """Run an I/O step; on failure record the first error and stop writing."""
+        try:
+            func(*args)
+        except (OSError, ValueError, McapError) as err:
+            reason = getattr(err, 'strerror', None) or str(err)
+            if self._error is None:
+                self._error = (f'recording to {self._dir} stopped after {self._count} '
+                               f'messages: {reason}; free disk space or choose another '
+                               'record directory, then run `python -m kneeseat_ros.recorder '
+                               'recover` on this bag')
+            if self._open is not None:
+                try:
+                    self._open.stream.close()
+                except (OSError, ValueError):
+                    pass
+                self._open = None
+
+    def _open_file(self) -> None:
+        path = self._dir / f'{self._dir.name}_{len(self._files)}.mcap'
+        stream: BinaryIO = open(path, 'xb')
+        stats = _FileStats(path)
+        self._files.append(stats)
+        writer = Writer(stream, chunk_size=self._chunk_size, compression=CompressionType.ZSTD,
+                        index_types=IndexType.ALL, repeat_channels=True, repeat_schemas=True,
+                        use_chunking=True, use_statistics=True, use_summary_offsets=True)
+        self._open = _OpenFile(stats, stream, writer)
+        writer.start(profile=PROFILE, library=LIBRARY)
+        writer.add_metadata(METADATA_NAME, dict(self._kneeseat_meta))
+        for spec in self._specs.values():
+            self._register(self._open, spec)
+        stream.flush()
+        self._open.last_tell = stream.tell()
+
+    def _register(self, file: _OpenFile, spec: TopicSpec) -> None:
+        if spec.msg_type not in file.schemas:
+            file.schemas[spec.msg_type] = file.writer.register_schema(
+                spec.msg_type, SCHEMA_ENCODING, spec.definition.encode('utf-8'))
+        file.channels[spec.topic] = file.writer.register_channel(
+            spec.topic, MESSAGE_ENCODING, file.schemas[spec.msg_type],
+            {'offered_qos_profiles': _yaml(list(spec.qos)) if spec.qos else '',
+             'topic_type_hash': spec.type_hash})
+
+    def _finish_file(self) -> None:
+        assert self._open is not None
+        self._open.writer.finish()
+        self._open.stream.close()
+        self._open = None
+
+    def _write_locked(self, topic: str, data: bytes, log_ns: int, pub_ns: int) -> None:
+        file = self._open
+        assert file is not None
+        if file.stats.count and (
+                self._split_pending
+                or (self._split_ns and log_ns - file.stats.start_ns >= self._split_ns)):
+            self._split_pending = False
+            self._finish_file()
+            self._open_file()
+            file = self._open
+            assert file is not None
+        file.writer.add_message(file.channels[topic], log_time=log_ns, data=data,
+                                publish_time=pub_ns, sequence=0)
+        if file.last_flush_ns < 0:
+            file.last_flush_ns = log_ns
+        if self._flush_ns and log_ns - file.last_flush_ns >= self._flush_ns:
+            file.writer.flush()          # closes the open chunk
+            file.last_flush_ns = log_ns
+        file.stream.flush()              # closed chunks reach the OS (survive SIGKILL)
+        tell = file.stream.tell()
+        if tell != file.last_tell:
+            file.last_tell, file.pending_bytes = tell, 0
+        else:
+            file.pending_bytes += len(data) + MESSAGE_RECORD_OVERHEAD
+        stats = file.stats
+        stats.start_ns = log_ns if stats.count == 0 else min(stats.start_ns, log_ns)
+        stats.end_ns = max(stats.end_ns, log_ns)
+        stats.count += 1
+        self._count += 1
+        self._topic_counts[topic] += 1
+        if self._split_size and tell + file.pending_bytes >= self._split_size:
+            self._split_pending = True
+
+    def _write_metadata(self) -> None:
+        used = [f for f in self._files if f.count]
+        start = min((f.start_ns for f in used), default=0)
+        end = max((f.end_ns for f in used), default=0)
+        info = {
+            'version': BAG_VERSION,
+            'storage_identifier': 'mcap',
+            'duration': {'nanoseconds': end - start},
+            'starting_time': {'nanoseconds_since_epoch': start},
+            'message_count': self._count,
+            'topics_with_message_count': [{
+                'topic_metadata': {
+                    'name': spec.topic,
+                    'type': spec.msg_type,
+                    'serialization_format': MESSAGE_ENCODING,
+                    'offered_qos_profiles': [dict(q) for q in spec.qos],
+                    'type_description_hash': spec.type_hash,
+                },
+                'message_count': self._topic_counts[spec.topic],
+            } for spec in self._specs.values()],
+            'compression_format': '',
+            'compression_mode': '',
+            'relative_file_paths': [f.path.name for f in self._files],
+            'files': [{
+                'path': f.path.name,
+                'starting_time': {'nanoseconds_since_epoch': f.start_ns if f.count else 0},
+                'duration': {'nanoseconds': f.end_ns - f.start_ns if f.count else 0},
+                'message_count': f.count,
+            } for f in self._files],
+            'custom_data': {f'kneeseat.{k}': v for k, v in self._kneeseat_meta.items()},
+            'ros_distro': 'jazzy',
+        }
+        tmp = self._dir / 'metadata.yaml.tmp'
+        tmp.write_text(_yaml({'rosbag2_bagfile_information': info}), encoding='utf-8')
+        tmp.replace(self._dir / 'metadata.yaml')
+
+
+# -- reading damaged files and recovery ------------------------------------------------------
+@dataclass(slots=True)
+class ReadableContent:
+    """What could be read from one MCAP file, front to back."""
+
+    header: Header | None = None
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    messages: list[Message] = field(default_factory=list)
+    metadata: list[Metadata] = field(default_factory=list)
+    complete: bool = False           # the footer was reached
+    problem: str = ''                # why reading stopped early
+
+
+def read_readable(path: Path) -> ReadableContent:
+    """Read every record of an MCAP file up to the first damage (e.g. a crash's truncation).
+
+    Only whole chunks are readable: the chunk being written when a process died is lost.
+    """
+    content = ReadableContent()
+    try:
+        with open(path, 'rb') as stream:
+            for record in StreamReader(stream).records:
+                if isinstance(record, Header):
+                    content.header = record
+                elif isinstance(record, Schema):
+                    content.schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    content.channels[record.id] = record
+                elif isinstance(record, Message):
+                    content.messages.append(record)
+                elif isinstance(record, Metadata):
+                    content.metadata.append(record)
+        content.complete = True
+    except (McapError, EOFError, ValueError, OSError, MemoryError) as err:
+        content.problem = str(err) or type(err).__name__
+    except Exception as err:  # noqa: B902 - zstd and struct errors have no common base
+        content.problem = f'{type(err).__name__}: {err}'
+    return content
+
+
+@dataclass(frozen=True, slots=True)
+class RecoveryReport:
+    """What `recover` wrote."""
+
+    output: Path
+    messages: int
+    files_read: int
+    damaged: tuple[str, ...]     # names of input files that ended early
+
+
+def _split_index(path: Path) -> tuple[int, str]:
+    match = _SPLIT_RE.search(path.name)
+    return (int(match.group(1)) if match else -1, path.name)
+
+
+def _specs_from(content: ReadableContent) -> Iterator[TopicSpec]:
+    for channel in content.channels.values():
+        schema = content.schemas.get(channel.schema_id)
+        if schema is None:
+            continue
+        try:
+            qos = tuple(yaml.safe_load(channel.metadata.get('offered_qos_profiles', '')) or ())
+        except yaml.YAMLError:
+            qos = ()
+        yield TopicSpec(channel.topic, schema.name, schema.data.decode('utf-8', 'replace'),
+                        channel.metadata.get('topic_type_hash', ''), qos)
+
+
+def recover(bag: Path, output: Path | None = None) -> RecoveryReport:
+    """Rewrite every readable message of a (possibly crashed) bag into a new, complete bag.
+
+    Args:
+        bag: a bag directory (its `*.mcap` files are read in split order, with or without
+            a metadata.yaml) or a single `.mcap` file.
+        output: the new bag directory (default: `<bag>_recovered` next to it); one output
+            file per input file that still holds messages.
+    Raises:
+        RecorderError: `bag` has no MCAP file, or `output` cannot be written.
+    """
+    bag = Path(bag)
+    if bag.is_dir():
+        inputs = sorted(bag.glob('*.mcap'), key=_split_index)
+    elif bag.is_file():
+        inputs = [bag]
+    else:
+        inputs = []
+    if not inputs:
+        raise RecorderError(f'no .mcap file found at {bag}; give a bag directory or an MCAP '
+                            'file')
+    stem = bag.name if bag.is_dir() else bag.stem
+    output = Path(output) if output is not None else bag.with_name(f'{stem}_recovered')
+    contents = [read_readable(p) for p in inputs]
+    meta: dict[str, str] = {}
+    for content in contents:
+        for record in content.metadata:
+            if record.name == METADATA_NAME and not meta:
+                meta = dict(record.metadata)
+    recorder = BagRecorder(output, table_sha256=meta.get('table_sha256', ''),
+                           table_path=meta.get('table_path', ''))
+    damaged: list[str] = []
+    try:
+        for path, content in zip(inputs, contents):
+            if not content.complete:
+                damaged.append(path.name)
+            for spec in _specs_from(content):
+                recorder.add_spec(spec)
+            recorder.split()
+            for msg in content.messages:
+                channel = content.channels.get(msg.channel_id)
+                if channel is None or channel.topic not in recorder._specs:
+                    continue
+                recorder.write_raw(channel.topic, msg.data, msg.log_time, msg.publish_time)
+    finally:
+        recorder.close()
+    if recorder.error is not None:
+        raise RecorderError(recorder.error)
+    return RecoveryReport(output, recorder.message_count, len(inputs), tuple(damaged))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m kneeseat_ros.recorder recover BAG [--output DIR]`."""
+    parser = argparse.ArgumentParser(prog='python -m kneeseat_ros.recorder',
+                                     description='Tools for kneeseat session bags.')
+    sub = parser.add_subparsers(dest='command', required=True)
+    rec = sub.add_parser('recover', help='rewrite the readable part of a crashed bag')
+    rec.add_argument('bag', type=Path, help='bag directory or .mcap file')
+    rec.add_argument('--output', type=Path, default=None,
+                     help='new bag directory (default: <bag>_recovered)')
+    args = parser.parse_args(argv)
+    try:
+        report = recover(args.bag, args.output)
+    except KneeseatError as err:
+        print(f'recover: error: {err}', file=sys.stderr)
+        return 2
+    print(f'recovered {report.messages} messages from {report.files_read} file(s) into '
+          f'{report.output}' + (f' (damaged: {", ".join(report.damaged)})'
+                                if report.damaged else ''))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
