@@ -1,0 +1,229 @@
+"""Pictures of a pose table: PNGs written, sized, marked, and bad arguments refused."""
+from __future__ import annotations
+
+from pathlib import Path
+import time
+from typing import Any, Literal
+
+from matplotlib.image import imread
+import numpy as np
+from PIL import Image
+import pytest
+import trimesh
+
+from kneeseat_core.errors import ConfigError, KneeseatError
+from kneeseat_core.geometry import KneeAxes, quat_from_matrix
+from kneeseat_core.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PANEL_IN,
+                                 PNG_KEY_NONCONVERGED, plot_table, render_table,
+                                 RENDER_EXTRA_IN, RENDER_PANEL_IN)
+from kneeseat_core.table import PoseTable
+
+# TKA knee frame: X anterior, Y superior, Z lateral; flexion about Z, varus about X.
+AXES = {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0], 'long': [0.0, 1.0, 0.0]}
+
+
+def make_table(*, seed: int = 7, flexion_deg: tuple[float, float, int] = (-90.0, 0.0, 19),
+               varus_deg: tuple[float, float, int] = (-10.0, 10.0, 5),
+               nonconverged: int = 0, meta: dict[str, Any] | None = None) -> PoseTable:
+    """A two-body synthetic table: a tibia swinging under the femur, a patella in front.
+
+    The tibia turns about the flexion axis through the femur's centre with a screw-home
+    rotation of 10 deg * flexion / 90 deg; the patella follows at a third of the angle. A
+    seeded jitter of 0.2 mm keeps the curves honest; `nonconverged` random cells of the
+    tibia are flagged.
+    """
+    rng = np.random.default_rng(seed)
+    flexion = np.radians(np.linspace(*flexion_deg))
+    varus = np.radians(np.linspace(*varus_deg))
+    knee = KneeAxes.from_vectors(AXES['flexion'], AXES['varus'], AXES['long'])
+    f, v = np.meshgrid(flexion, varus, indexing='ij')                          # (F, V)
+    n_f, n_v = f.shape
+    tibia_r = knee.orientation(f.ravel(), v.ravel(), np.radians(10.0) * f.ravel() / (np.pi / 2))
+    patella_r = knee.orientation(f.ravel() / 3.0, np.zeros(f.size), np.zeros(f.size))
+    tibia_p = tibia_r @ np.array([0.0, -0.045, 0.0])                           # (F*V, 3)
+    patella_p = patella_r @ np.array([0.040, 0.0, 0.0])
+    position = np.stack([tibia_p, patella_p]).reshape(2, n_f, n_v, 3)
+    position = position + rng.normal(0.0, 2e-4, position.shape)
+    orientation = quat_from_matrix(np.stack([tibia_r, patella_r])).reshape(2, n_f, n_v, 4)
+    converged = np.ones((2, n_f, n_v), dtype=bool)
+    if nonconverged:
+        cells = rng.choice(n_f * n_v, size=nonconverged, replace=False)
+        converged[0].reshape(-1)[cells] = False
+    metadata: dict[str, Any] = {
+        'schema': 'kneeseat.table/1',
+        'name': 'synthetic knee',
+        'reference': {'name': 'femur', 'frame': 'femur', 'mesh': 'femur.stl',
+                      'mesh_sha256': 'a1b2c3d4' + '0' * 56},
+        'bodies': [{'name': 'tibia', 'frame': 'tibia', 'mesh': 'tibia.stl',
+                    'mesh_sha256': 'deadbeef' + '1' * 56, 'display_mesh': None},
+                   {'name': 'patella', 'frame': 'patella', 'mesh': 'patella.stl',
+                    'mesh_sha256': 'cafef00d' + '2' * 56, 'display_mesh': None}],
+        'axes': AXES,
+    }
+    metadata.update(meta or {})
+    return PoseTable(flexion, varus, position, orientation, converged,
+                     np.full((2, n_f, n_v), 12), metadata)
+
+
+def knee_meshes(subdivisions: int = 3) -> dict[str, trimesh.Trimesh]:
+    """Simple bones in their own frames (m): a round femur, a box tibia, a disc patella."""
+    femur = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.025)
+    femur.apply_scale([1.0, 1.0, 1.4])
+    tibia = trimesh.creation.box(extents=[0.045, 0.06, 0.07])
+    patella = trimesh.creation.cylinder(radius=0.015, height=0.01, sections=48)
+    patella.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    return {'femur': femur, 'tibia': tibia, 'patella': patella}
+
+
+def red_pixels(path: Path) -> int:
+    """Pixels of the non-converged marker colour (pure red, within antialiasing)."""
+    rgb = imread(path)[..., :3]
+    target = np.asarray(MARKER_RGB)
+    return int((np.abs(rgb - target) < 0.1).all(axis=-1).sum())
+
+
+def png_text(path: Path) -> dict[str, str]:
+    """The PNG's tEXt chunks."""
+    with Image.open(path) as image:
+        return dict(image.text)
+
+
+def test_plot_writes_png_of_expected_size(tmp_path: Path) -> None:
+    table = make_table()
+    out = plot_table(table, tmp_path / 'new' / 'dir' / 'plot.png')   # missing dirs created
+    assert out == tmp_path / 'new' / 'dir' / 'plot.png'
+    image = imread(out)
+    bodies = len(table.bodies)
+    height = round((bodies * PLOT_PANEL_IN[1] + PLOT_EXTRA_IN) * DPI)
+    assert image.shape[:2] == (height, round(4 * PLOT_PANEL_IN[0] * DPI))
+    assert image[..., :3].std() > 0.05                               # not a blank canvas
+    assert png_text(out)[PNG_KEY_NONCONVERGED] == '0'
+    assert red_pixels(out) < 100                     # only the legend's marker is red
+    assert not list(out.parent.glob('.*tmp'))                        # no temp file left
+
+
+def test_plot_marks_nonconverged_cells(tmp_path: Path) -> None:
+    table = make_table(nonconverged=40)
+    out = plot_table(table, tmp_path / 'plot.png', varus_deg=[-10.0, 0.0, 10.0])
+    clean = plot_table(make_table(), tmp_path / 'clean.png', varus_deg=[-10.0, 0.0, 10.0])
+    bad = ~table.converged[0][:, [0, 2, 4]]
+    assert bad.sum() > 0
+    assert png_text(out)[PNG_KEY_NONCONVERGED] == str(int(bad.sum()))
+    assert red_pixels(out) > 10 * red_pixels(clean) > 0
+
+
+def test_plot_picks_nearest_varus_and_accepts_a_title(tmp_path: Path) -> None:
+    table = make_table(nonconverged=40)
+    out = plot_table(table, tmp_path / 'plot.png', varus_deg=[2.0], title='my title')
+    bad = ~table.converged[0][:, 2]                                  # 2 deg -> column 0 deg
+    assert png_text(out)[PNG_KEY_NONCONVERGED] == str(int(bad.sum()))
+
+
+def test_plot_overwrites_atomically(tmp_path: Path) -> None:
+    out = tmp_path / 'plot.png'
+    out.write_bytes(b'old')
+    plot_table(make_table(varus_deg=(0.0, 0.0, 1)), out)
+    assert imread(out).shape[0] > 100
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['plot.png']
+
+
+@pytest.mark.parametrize(('kwargs', 'match'), [
+    ({'varus_deg': [25.0]}, r'varus_deg=25 deg outside the table \[-10, 10\] deg'),
+    ({'varus_deg': []}, r'varus_deg=\[\] must hold at least one finite angle'),
+    ({'varus_deg': [float('nan')]}, r'must hold at least one finite angle'),
+    ({'varus_deg': ['left']}, r'is not a list of numbers'),
+])
+def test_plot_refuses_bad_varus(tmp_path: Path, kwargs: dict[str, Any], match: str) -> None:
+    with pytest.raises(ConfigError, match=match) as info:
+        plot_table(make_table(), tmp_path / 'plot.png', **kwargs)
+    assert '\n' not in str(info.value)
+    assert not (tmp_path / 'plot.png').exists()
+
+
+def test_unwritable_or_wrong_outputs_give_one_line_errors(tmp_path: Path) -> None:
+    blocker = tmp_path / 'file'
+    blocker.write_text('not a directory')
+    table = make_table(varus_deg=(0.0, 0.0, 1))
+    for out, match in ((blocker / 'plot.png', r'cannot write picture .*plot\.png'),
+                       (tmp_path / 'plot.pdf', r'does not end in \.png')):
+        with pytest.raises(KneeseatError, match=match) as info:
+            plot_table(table, out)
+        assert '\n' not in str(info.value)
+    (tmp_path / 'dir.png').mkdir()
+    with pytest.raises(KneeseatError, match='cannot write picture') as info:
+        plot_table(table, tmp_path / 'dir.png')
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith('.tmp')]
+
+
+@pytest.mark.parametrize('view', ['lateral', 'anterior'])
+def test_render_both_views(tmp_path: Path, view: Literal['lateral', 'anterior']) -> None:
+    table = make_table()
+    out = render_table(table, knee_meshes(), tmp_path / f'{view}.png', view=view)
+    image = imread(out)
+    panels = 5                                                       # default: 5 of 19 nodes
+    assert image.shape[:2] == (round((RENDER_PANEL_IN[1] + RENDER_EXTRA_IN) * DPI),
+                               round(panels * RENDER_PANEL_IN[0] * DPI))
+    assert image[..., :3].std() > 0.05
+    assert png_text(out)[PNG_KEY_NONCONVERGED] == '0'
+
+
+def test_render_views_differ_and_angles_are_chosen(tmp_path: Path) -> None:
+    table = make_table(nonconverged=95)                              # every tibia cell
+    meshes = knee_meshes()
+    lateral = render_table(table, meshes, tmp_path / 'l.png', flexion_deg=[0, -45, -90])
+    anterior = render_table(table, meshes, tmp_path / 'a.png', flexion_deg=[0, -45, -90],
+                            view='anterior')
+    a, b = imread(lateral), imread(anterior)
+    assert a.shape == b.shape
+    assert a.shape[1] == round(3 * RENDER_PANEL_IN[0] * DPI)
+    assert np.abs(a - b).mean() > 0.01
+    assert png_text(lateral)[PNG_KEY_NONCONVERGED] == '3'          # tibia in 3 panels
+
+
+def test_render_off_grid_flexion_uses_interpolation(tmp_path: Path) -> None:
+    table = make_table()
+    try:
+        table.interpolate(-0.1, 0.0)
+    except NotImplementedError:
+        pytest.skip('PoseTable.interpolate is still a stub (kneeseat_core/table.py)')
+    out = render_table(table, knee_meshes(), tmp_path / 'r.png', flexion_deg=[-12.5])
+    assert imread(out).shape[1] == round(RENDER_PANEL_IN[0] * DPI)
+
+
+@pytest.mark.parametrize(('kwargs', 'match'), [
+    ({'flexion_deg': [10.0]}, r'flexion_deg=10 deg outside the table \[-90, 0\] deg'),
+    ({'flexion_deg': [-100.0, -10.0]}, r'flexion_deg=-100 deg outside the table'),
+    ({'flexion_deg': [float('inf')]}, r'must hold at least one finite angle'),
+    ({'flexion_deg': list(range(-20, 0))}, r'draw at most 12'),
+    ({'view': 'posterior'}, r"view='posterior' is not a view; use 'lateral' or 'anterior'"),
+])
+def test_render_refuses_bad_arguments(tmp_path: Path, kwargs: dict[str, Any],
+                                      match: str) -> None:
+    with pytest.raises(ConfigError, match=match) as info:
+        render_table(make_table(), knee_meshes(1), tmp_path / 'r.png', **kwargs)
+    assert '\n' not in str(info.value)
+
+
+def test_render_refuses_missing_or_unknown_meshes(tmp_path: Path) -> None:
+    table = make_table()
+    meshes = knee_meshes(1)
+    del meshes['patella']
+    with pytest.raises(ConfigError, match=r"no mesh for 'patella'"):
+        render_table(table, meshes, tmp_path / 'r.png')
+    meshes = {**knee_meshes(1), 'fibula': trimesh.creation.box()}
+    with pytest.raises(ConfigError, match=r"'fibula', which is not a body of the table"):
+        render_table(table, meshes, tmp_path / 'r.png')
+
+
+def test_render_of_large_meshes_is_quick(tmp_path: Path) -> None:
+    """Three meshes of 20k-80k triangles render in well under the 10 s budget."""
+    femur = trimesh.creation.icosphere(subdivisions=6, radius=0.025)      # 81,920 faces
+    tibia = trimesh.creation.box(extents=[0.045, 0.06, 0.07])
+    for _ in range(6):
+        tibia = tibia.subdivide()                                          # 49,152 faces
+    patella = trimesh.creation.icosphere(subdivisions=5, radius=0.015)    # 20,480 faces
+    patella.apply_scale([0.4, 1.0, 1.0])
+    started = time.perf_counter()
+    render_table(make_table(), {'femur': femur, 'tibia': tibia, 'patella': patella},
+                 tmp_path / 'big.png')
+    assert time.perf_counter() - started < 10.0
