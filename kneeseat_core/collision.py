@@ -32,6 +32,10 @@ class RigidBody:
     bvh: fcl.BVHModel
     centres: Floats     # (n, 3) triangle centres, m
     normals: Floats     # (n, 3) unit outward normals at the centres (mean vertex normals)
+    vertices: Floats    # (m, 3) vertices, m (a plain array: no trimesh cache checks)
+    centroid: Floats    # (3,) m, centre of the surface
+    bound_centre: Floats  # (3,) m, centre of a sphere enclosing every vertex
+    bound_radius: float   # m
 
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh) -> RigidBody:
@@ -48,12 +52,10 @@ class RigidBody:
         flat = lengths[:, 0] < 1e-9
         normals[flat] = np.asarray(mesh.face_normals)[flat]
         lengths[flat] = 1.0
-        return cls(mesh, bvh, np.asarray(mesh.triangles_center), normals / lengths)
-
-    @property
-    def vertices(self) -> Floats:
-        """(n, 3) vertices, m, body frame."""
-        return np.asarray(self.mesh.vertices)
+        centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+        radius = float(np.sqrt(np.max(np.sum((vertices - centre) ** 2, axis=1))))
+        return cls(mesh, bvh, np.asarray(mesh.triangles_center), normals / lengths,
+                   vertices, np.asarray(mesh.centroid, dtype=np.float64), centre, radius)
 
 
 @dataclass(slots=True, eq=False)

@@ -40,7 +40,7 @@ def load_mesh(path: Path | str, units: Units = 'm') -> trimesh.Trimesh:
     if not path.is_file():
         raise MeshError(f'{path}: no such mesh file; check the path')
     try:
-        loaded = trimesh.load(str(path), force='mesh', process=False)
+        loaded = trimesh.load(str(path), force='mesh')
     except Exception as err:  # trimesh raises many types for a bad file
         raise MeshError(f'{path}: not a readable mesh ({type(err).__name__}: {err}); '
                         'give an STL, PLY, OBJ, OFF or GLB file') from None
