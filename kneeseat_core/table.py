@@ -1,26 +1,55 @@
 """The pose table: settled poses over a (flexion, varus) grid, its file, and interpolation.
 
-STUB: signatures are the contract; bodies are being written (see issue 3).
-
 File (DESIGN.md "Table file"): one `.npz` loaded with allow_pickle=False holding
-`flexion` [F], `varus` [V] (rad, ascending), `position` [B,F,V,3] (m, reference frame),
-`orientation` [B,F,V,4] (x, y, z, w), `converged` [B,F,V] bool, `iterations` [B,F,V] int,
-and `metadata`, a JSON string (see `METADATA_KEYS`).
+`flexion` [F], `varus` [V] (rad, strictly ascending), `position` [B,F,V,3] (m, reference
+frame), `orientation` [B,F,V,4] (x, y, z, w), `converged` [B,F,V] bool, `iterations`
+[B,F,V] int, and `metadata`, a JSON string stored as a 0-d unicode array (see
+`METADATA_KEYS`). Nothing else is in the file.
+
+`arrays_sha256` (in the metadata) is the SHA-256 of, for each array in `ARRAY_NAMES` order,
+the UTF-8 line `'<name> <dtype> <d0>x<d1>x...\\n'` followed by the array's C-order bytes,
+where the array is first cast to its canonical dtype (`<f8` for the four float arrays, `|b1`
+for `converged`, `<i8` for `iterations`). It covers the arrays only: the metadata itself is
+protected against accidental damage by the zip's CRC-32, and a deliberate edit of it (say,
+renaming a frame) keeps the table valid.
+
+Interpolation (DESIGN.md "Interpolation") is bilinear in (flexion, varus) on the possibly
+non-uniform grid: positions linearly, orientations by a normalised bilinear blend of the four
+corner quaternions after aligning each to the first corner's hemisphere. A single query costs
+a few microseconds: everything that does not depend on the query is precomputed once per table
+(as plain Python floats; a numpy version of the same query measured about 3x slower, see
+benchmarks/bench_interp.py).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from bisect import bisect_right
+import contextlib
+import csv
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+import hashlib
+import io
+import json
+import math
+import os
 from pathlib import Path
-from typing import Any, Literal
+import secrets
+from typing import Any, BinaryIO, Callable, Literal
+import zipfile
+import zlib
 
 import numpy as np
 
-from .geometry import KneeAxes
+from .errors import ConfigError, KneeseatError, MeshError, OutOfRangeError, TableError
+from .geometry import KneeAxes, matrix_from_quat, TOL
 from .typed import Floats
 
-__all__ = ['SCHEMA', 'PoseTable', 'Lookup', 'write_table', 'read_table']
+__all__ = ['SCHEMA', 'SUPPORTED_SCHEMAS', 'ARRAY_NAMES', 'METADATA_KEYS', 'PoseTable', 'Lookup',
+           'write_table', 'read_table', 'with_hash', 'arrays_sha256', 'file_sha256',
+           'describe', 'lookup_json', 'export_csv', 'CSV_COLUMNS']
 
 SCHEMA = 'kneeseat.table/1'
+SUPPORTED_SCHEMAS = (SCHEMA,)
 
 # metadata JSON (a dict):
 #   schema: SCHEMA
@@ -34,6 +63,26 @@ SCHEMA = 'kneeseat.table/1'
 #   arrays_sha256: hex SHA-256 over the arrays (checked on load)
 #   built: ISO 8601 UTC build time
 #   summary: {"cells": int, "converged": int, "wall_s": float, "collision_checks": int}
+METADATA_KEYS = ('schema', 'kneeseat_version', 'reference', 'bodies', 'axes', 'config',
+                 'settle', 'arrays_sha256', 'built', 'summary')
+# Keys without which a table cannot be served; the others are provenance (shown if present).
+_REQUIRED_KEYS = ('schema', 'reference', 'bodies', 'axes')
+
+ARRAY_NAMES = ('flexion', 'varus', 'position', 'orientation', 'converged', 'iterations')
+# canonical dtype of each array (file and hash)
+_DTYPES = {'flexion': np.dtype('<f8'), 'varus': np.dtype('<f8'), 'position': np.dtype('<f8'),
+           'orientation': np.dtype('<f8'), 'converged': np.dtype('|b1'),
+           'iterations': np.dtype('<i8')}
+_KINDS = {'flexion': 'f', 'varus': 'f', 'position': 'f', 'orientation': 'f', 'converged': 'b',
+          'iterations': 'iu'}
+
+CSV_COLUMNS = ('body', 'flexion_deg', 'varus_deg', 'x_m', 'y_m', 'z_m', 'flexion_rot_deg',
+               'varus_rot_deg', 'long_rot_deg', 'converged', 'iterations')
+
+_REBUILD = 'rebuild it with `kneeseat build`'
+# A blend whose norm is this close to 1 is returned as is, so that a grid node returns its
+# stored quaternion bit for bit (renormalising would change the last bit of a unit quaternion).
+_UNIT_AS_IS = 4.0 * float(np.finfo(np.float64).eps)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -46,9 +95,64 @@ class Lookup:
     nonconverged: Floats        # (B,) bool: a non-converged cell contributed to that body
 
 
+class _Grid:
+    """Query-independent interpolation data of one table, as plain Python objects.
+
+    Nodes are numbered k = i * V + j. For each cell (i, j) (i < max(F - 1, 1), same for j)
+    the corners are k00 = k, k01 = k + dj, k10 = k + di, k11 = k + di + dj, where di = V and
+    dj = 1 except along a grid axis of length 1 (then 0: the "cell" is a line or a point).
+    """
+
+    __slots__ = ('fx', 'vx', 'f_lo', 'f_hi', 'v_lo', 'v_hi', 'f_width', 'v_width', 'nf', 'nv',
+                 'nvar', 'di', 'dj', 'nodes', 'signs', 'unconverged', 'nbodies')
+
+    def __init__(self, table: PoseTable) -> None:
+        fx = np.asarray(table.flexion_rad, dtype=np.float64)
+        vx = np.asarray(table.varus_rad, dtype=np.float64)
+        pos = np.asarray(table.position_m, dtype=np.float64)
+        quat = np.asarray(table.orientation_xyzw, dtype=np.float64)
+        conv = np.asarray(table.converged, dtype=bool)
+        nb, nfx, nvx = pos.shape[:3]
+        self.fx, self.vx = fx.tolist(), vx.tolist()
+        self.f_lo, self.f_hi = self.fx[0], self.fx[-1]
+        self.v_lo, self.v_hi = self.vx[0], self.vx[-1]
+        # width of each cell; a 1-long axis gets an infinite width so that u = 0 exactly
+        self.f_width = np.diff(fx).tolist() or [math.inf]
+        self.v_width = np.diff(vx).tolist() or [math.inf]
+        self.nf, self.nv, self.nvar = max(nfx - 1, 1), max(nvx - 1, 1), nvx
+        self.di, self.dj = (nvx if nfx > 1 else 0), (1 if nvx > 1 else 0)
+        self.nbodies = nb
+        node = np.concatenate([pos, quat], axis=-1).reshape(nb, nfx * nvx, 7)
+        self.nodes = [[tuple(r) for r in body] for body in node.tolist()]
+        # hemisphere signs of corners 01, 10, 11 relative to corner 00, per body and cell
+        i0, j0 = np.arange(self.nf), np.arange(self.nv)
+        i1, j1 = np.minimum(i0 + 1, nfx - 1), np.minimum(j0 + 1, nvx - 1)
+        q00 = quat[:, i0][:, :, j0]
+        corners = (quat[:, i0][:, :, j1], quat[:, i1][:, :, j0], quat[:, i1][:, :, j1])
+        sign = np.stack([np.where(np.sum(q00 * qc, axis=-1) < 0.0, -1.0, 1.0)
+                         for qc in corners], axis=-1).reshape(nb, self.nf * self.nv, 3)
+        patterns: dict[tuple[float, ...], tuple[float, ...]] = {}
+        self.signs = [[patterns.setdefault(t, t) for t in map(tuple, body)]
+                      for body in sign.tolist()]
+        self.unconverged = (None if bool(conv.all())
+                            else [(~c).reshape(-1).tolist() for c in conv])
+
+
+def _grid_of(table: PoseTable) -> _Grid:
+    grid = table._grid
+    if grid is None:
+        grid = _Grid(table)
+        object.__setattr__(table, '_grid', grid)
+    return grid
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class PoseTable:
-    """Settled poses of each moving body over the grid, plus provenance."""
+    """Settled poses of each moving body over the grid, plus provenance.
+
+    The arrays must not be modified once the table is used: interpolation data derived from
+    them is cached on the instance at the first `interpolate` call.
+    """
 
     flexion_rad: Floats         # (F,) ascending
     varus_rad: Floats           # (V,) ascending
@@ -57,6 +161,7 @@ class PoseTable:
     converged: Floats           # (B, F, V) bool
     iterations: Floats          # (B, F, V) int
     metadata: dict[str, Any]
+    _grid: _Grid | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def bodies(self) -> tuple[str, ...]:
@@ -88,27 +193,531 @@ class PoseTable:
                     out_of_range: Literal['clamp', 'drop'] = 'clamp') -> Lookup:
         """Bilinear pose of every body at (flexion, varus).
 
+        Positions are blended linearly; orientations by the normalised bilinear blend of the
+        four corner quaternions, each first aligned to the hemisphere of the cell's first
+        corner. A grid node returns that node's pose; a grid axis of length 1 accepts only its
+        single value (anything else is out of range).
+
+        Args:
+            flexion_rad: flexion angle (rad), finite.
+            varus_rad: varus angle (rad), finite.
+            out_of_range: 'clamp' moves an outside request to the nearest grid edge and sets
+                `Lookup.clamped`; 'drop' raises OutOfRangeError instead.
+        Returns:
+            The poses (B, 3) m and (B, 4) xyzw (w >= 0) in the reference frame, the clamped
+            flag and, per body, whether a non-converged node had a non-zero weight.
         Raises:
+            KneeseatError: an angle is NaN or infinite.
+            ConfigError: `out_of_range` is neither 'clamp' nor 'drop'.
             OutOfRangeError: outside the grid and `out_of_range` is 'drop'.
         """
-        raise NotImplementedError
+        g = self._grid
+        if g is None:
+            g = _grid_of(self)
+        f, v = float(flexion_rad), float(varus_rad)
+        if not (math.isfinite(f) and math.isfinite(v)):
+            raise KneeseatError(f'pose table lookup at flexion={f} rad, varus={v} rad: angles '
+                                'must be finite; drop NaN/inf tracker samples before the lookup')
+        if out_of_range != 'clamp' and out_of_range != 'drop':
+            raise ConfigError(f'out_of_range={out_of_range!r} is not a policy; '
+                              "use 'clamp' or 'drop'")
+        clamped = False
+        if f < g.f_lo or f > g.f_hi:
+            if out_of_range == 'drop':
+                raise OutOfRangeError('flexion', f, g.f_lo, g.f_hi)
+            f, clamped = (g.f_lo if f < g.f_lo else g.f_hi), True
+        if v < g.v_lo or v > g.v_hi:
+            if out_of_range == 'drop':
+                raise OutOfRangeError('varus', v, g.v_lo, g.v_hi)
+            v, clamped = (g.v_lo if v < g.v_lo else g.v_hi), True
+        i = bisect_right(g.fx, f) - 1
+        if i >= g.nf:
+            i = g.nf - 1
+        j = bisect_right(g.vx, v) - 1
+        if j >= g.nv:
+            j = g.nv - 1
+        u = (f - g.fx[i]) / g.f_width[i]
+        t = (v - g.vx[j]) / g.v_width[j]
+        a, b, c, d = (1.0 - u) * (1.0 - t), (1.0 - u) * t, u * (1.0 - t), u * t
+        k00 = i * g.nvar + j
+        k01, k10 = k00 + g.dj, k00 + g.di
+        k11 = k10 + g.dj
+        cell = i * g.nv + j
+        positions, quats = [], []
+        for nodes, signs in zip(g.nodes, g.signs):
+            n00, n01, n10, n11 = nodes[k00], nodes[k01], nodes[k10], nodes[k11]
+            positions.append([a * n00[0] + b * n01[0] + c * n10[0] + d * n11[0],
+                              a * n00[1] + b * n01[1] + c * n10[1] + d * n11[1],
+                              a * n00[2] + b * n01[2] + c * n10[2] + d * n11[2]])
+            sb, sc, sd = signs[cell]
+            qb, qc, qd = b * sb, c * sc, d * sd
+            qx = a * n00[3] + qb * n01[3] + qc * n10[3] + qd * n11[3]
+            qy = a * n00[4] + qb * n01[4] + qc * n10[4] + qd * n11[4]
+            qz = a * n00[5] + qb * n01[5] + qc * n10[5] + qd * n11[5]
+            qw = a * n00[6] + qb * n01[6] + qc * n10[6] + qd * n11[6]
+            norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+            if norm < TOL.unit_norm:
+                # corners nearly cancel (adjacent cells ~180 deg apart): take the heaviest one
+                best = max(zip((a, b, c, d), (n00, n01, n10, n11)), key=lambda p: p[0])[1]
+                qx, qy, qz, qw = best[3:]
+                norm = 1.0
+            s = 1.0 if abs(norm - 1.0) <= _UNIT_AS_IS else 1.0 / norm
+            if qw < 0.0:
+                s = -s
+            quats.append([qx * s, qy * s, qz * s, qw * s])
+        if g.unconverged is None:
+            flags = [False] * g.nbodies
+        else:
+            flags = [(n[k00] and a != 0.0) or (n[k01] and b != 0.0) or (n[k10] and c != 0.0)
+                     or (n[k11] and d != 0.0) for n in g.unconverged]
+        return Lookup(np.array(positions), np.array(quats), clamped,
+                      np.array(flags, dtype=bool))
+
+
+# ----------------------------------------------------------------------------- hashing
+
+def _canonical(name: str, value: Any) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(value).astype(_DTYPES[name], copy=False))
+
+
+def arrays_sha256(table: PoseTable) -> str:
+    """SHA-256 (hex) of the table's six arrays, as defined in this module's docstring."""
+    return _hash_arrays(_table_arrays(table))
+
+
+def _hash_arrays(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in ARRAY_NAMES:
+        a = _canonical(name, arrays[name])
+        h.update(f'{name} {a.dtype.str} {"x".join(map(str, a.shape))}\n'.encode())
+        h.update(a.tobytes(order='C'))
+    return h.hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB chunks.
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    h = hashlib.sha256()
+    with open(path, 'rb') as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b''):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _table_arrays(table: PoseTable) -> dict[str, Any]:
+    return {'flexion': table.flexion_rad, 'varus': table.varus_rad,
+            'position': table.position_m, 'orientation': table.orientation_xyzw,
+            'converged': table.converged, 'iterations': table.iterations}
+
+
+# -------------------------------------------------------------------------- validation
+
+def _check_arrays(arrays: dict[str, Any], nbodies: int, where: str) -> dict[str, np.ndarray]:
+    """Check kinds, shapes and values; return the arrays in their canonical dtypes."""
+    out: dict[str, np.ndarray] = {}
+    for name in ARRAY_NAMES:
+        a = np.asarray(arrays[name])
+        if a.dtype.kind not in _KINDS[name] or (_KINDS[name] == 'f' and a.dtype.itemsize != 8):
+            want = {'f': 'float64', 'b': 'bool', 'iu': 'integer'}[_KINDS[name]]
+            raise TableError(f'{where}: array {name!r} has dtype {a.dtype}, expected {want}; '
+                             f'{_REBUILD}')
+        out[name] = _canonical(name, a)
+    fx, vx = out['flexion'], out['varus']
+    for name, g in (('flexion', fx), ('varus', vx)):
+        if g.ndim != 1 or g.size == 0:
+            raise TableError(f'{where}: grid {name!r} has shape {g.shape}, expected a non-empty '
+                             f'1-D array (rad); {_REBUILD}')
+    grid = (nbodies, fx.size, vx.size)
+    for name, tail in (('position', (3,)), ('orientation', (4,)), ('converged', ()),
+                       ('iterations', ())):
+        if out[name].shape != grid + tail:
+            raise TableError(f'{where}: array {name!r} has shape {out[name].shape}, expected '
+                             f'{grid + tail} (bodies, flexion, varus{", " if tail else ""}'
+                             f'{tail[0] if tail else ""}); {_REBUILD}')
+    for name in ('flexion', 'varus', 'position', 'orientation'):
+        bad = ~np.isfinite(out[name])
+        if bad.any():
+            raise TableError(f'{where}: array {name!r} holds {int(bad.sum())} non-finite '
+                             f'value(s) (first at index {np.argwhere(bad)[0].tolist()}); '
+                             f'{_REBUILD}')
+    for name, g in (('flexion', fx), ('varus', vx)):
+        if g.size > 1 and not bool(np.all(np.diff(g) > 0.0)):
+            k = int(np.argmax(np.diff(g) <= 0.0))
+            raise TableError(f'{where}: grid {name!r} is not strictly ascending (index {k}: '
+                             f'{g[k]:.6g} then {g[k + 1]:.6g} rad); {_REBUILD}')
+    err = np.abs(np.linalg.norm(out['orientation'], axis=-1) - 1.0)
+    if bool((err > TOL.unit_norm).any()):
+        b, i, j = np.argwhere(err > TOL.unit_norm)[0].tolist()
+        raise TableError(f'{where}: orientation of body {b} at flexion '
+                         f'{math.degrees(fx[i]):.3f} deg, varus {math.degrees(vx[j]):.3f} deg '
+                         f'is not a unit quaternion (|1 - |q|| = {err[b, i, j]:.2e}); '
+                         f'{_REBUILD}')
+    if bool((out['iterations'] < 0).any()):
+        raise TableError(f'{where}: array "iterations" holds negative counts; {_REBUILD}')
+    return out
+
+
+def _check_metadata(meta: Any, where: str) -> None:
+    """Check what serving needs: schema, bodies, reference and axes."""
+    if not isinstance(meta, dict):
+        raise TableError(f'{where}: metadata is a JSON {type(meta).__name__}, expected an '
+                         f'object; {_REBUILD}')
+    missing = [k for k in _REQUIRED_KEYS if k not in meta]
+    if missing:
+        raise TableError(f'{where}: metadata lacks {", ".join(missing)}; {_REBUILD}')
+    bodies = meta['bodies']
+    if (not isinstance(bodies, list) or not bodies
+            or not all(isinstance(b, dict) and isinstance(b.get('name'), str) and b['name']
+                       and isinstance(b.get('frame'), str) and b['frame'] for b in bodies)):
+        raise TableError(f'{where}: metadata "bodies" must be a non-empty list of '
+                         f'{{"name": str, "frame": str, ...}}; {_REBUILD}')
+    names = [b['name'] for b in bodies]
+    if len(set(names)) != len(names):
+        raise TableError(f'{where}: metadata "bodies" repeats a name ({names}); give each '
+                         f'moving body its own name and {_REBUILD}')
+    ref = meta['reference']
+    if not isinstance(ref, dict) or not isinstance(ref.get('frame'), str) or not ref['frame']:
+        raise TableError(f'{where}: metadata "reference" must be {{"name": str, "frame": str, '
+                         f'...}}; {_REBUILD}')
+    axes = meta['axes']
+    try:
+        KneeAxes.from_vectors(axes['flexion'], axes['varus'], axes['long'])
+    except (KeyError, TypeError, ValueError) as err:
+        raise TableError(f'{where}: metadata "axes" must hold "flexion", "varus" and "long" '
+                         f'3-vectors ({err!r}); {_REBUILD}') from None
+    except ConfigError as err:
+        raise TableError(f'{where}: metadata "axes": {err}') from None
+
+
+def _check_schema(meta: Any, where: str) -> None:
+    schema = meta.get('schema') if isinstance(meta, dict) else None
+    if schema not in SUPPORTED_SCHEMAS:
+        raise TableError(f'{where}: unknown table schema {schema!r}; this kneeseat reads '
+                         f'{", ".join(SUPPORTED_SCHEMAS)}; rebuild the table with this '
+                         'kneeseat or use the kneeseat version that wrote it')
+
+
+# ------------------------------------------------------------------------------ writing
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f'{type(value).__name__} is not JSON serialisable')
+
+
+def _kneeseat_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version('kneeseat_ros')
+    except PackageNotFoundError:
+        return 'unknown'
+
+
+def with_hash(table: PoseTable) -> PoseTable:
+    """A copy of `table` whose metadata is what `write_table` stores.
+
+    The metadata gets `schema` = SCHEMA and `arrays_sha256`; `kneeseat_version` and `built`
+    are filled in when absent. The arrays are shared, not copied.
+
+    Raises:
+        TableError: the arrays or metadata are not a valid table.
+    """
+    meta = dict(table.metadata)
+    meta['schema'] = SCHEMA
+    where = 'cannot write table'
+    _check_metadata(meta, where)
+    arrays = _check_arrays(_table_arrays(table), len(meta['bodies']), where)
+    meta.setdefault('kneeseat_version', _kneeseat_version())
+    meta.setdefault('built', datetime.now(timezone.utc).isoformat(timespec='seconds'))
+    meta['arrays_sha256'] = _hash_arrays(arrays)
+    return replace(table, metadata=meta)
+
+
+def _atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """Write via a temp file in the same directory, fsync, then rename over `path`.
+
+    On any failure the temp file is removed and `path` is left as it was.
+    """
+    directory = path.parent
+    tmp = directory / f'.{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp'
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)   # umask applies
+    try:
+        with os.fdopen(fd, 'wb') as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):          # make the rename itself durable
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
 
 
 def write_table(path: Path, table: PoseTable) -> None:
-    """Write `table` atomically (temp file + rename); fills in `arrays_sha256`."""
-    raise NotImplementedError
+    """Write `table` atomically (temp file + rename); fills in `arrays_sha256`.
+
+    The file holds the metadata of `with_hash(table)`; the caller's `table` is unchanged.
+
+    Args:
+        path: destination `.npz` file; its directory must exist. Replaced if present.
+        table: the table; arrays are stored in their canonical dtypes.
+    Raises:
+        TableError: the table is invalid (shapes, NaN, non-unit quaternions, metadata that
+            is not JSON) or the file cannot be written (nothing is left behind).
+    """
+    path = Path(path)
+    hashed = with_hash(table)
+    try:
+        text = json.dumps(hashed.metadata, default=_json_default, allow_nan=False)
+    except (TypeError, ValueError) as err:
+        raise TableError(f'cannot write table {path}: metadata is not JSON ({err}); store '
+                         'only str, numbers, bools, None, lists and dicts in it') from None
+    arrays = {name: _canonical(name, a) for name, a in _table_arrays(hashed).items()}
+    arrays['metadata'] = np.array(text)
+
+    def save(fh: BinaryIO) -> None:
+        np.savez(fh, allow_pickle=False, **arrays)
+
+    try:
+        _atomic_write(path, save)
+    except OSError as err:
+        raise TableError(f'cannot write table {path}: {err.strerror or err}; check that the '
+                         'directory exists, is writable and has free space') from err
+
+
+# ------------------------------------------------------------------------------ reading
+
+_CORRUPT = (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError)
 
 
 def read_table(path: Path, meshes: dict[str, Path] | None = None) -> PoseTable:
     """Load and verify a table file.
 
     Args:
-        meshes: optional body name -> mesh path; their SHA-256 must match the metadata.
+        path: a `.npz` written by `write_table`.
+        meshes: optional body name -> mesh path (the reference body's name is accepted too);
+            each file's SHA-256 must match the one recorded in the metadata.
+    Returns:
+        The table, arrays read-only, interpolation data precomputed.
     Raises:
         TableError: missing, unreadable, truncated, tampered (hash), unknown schema,
             wrong array shapes, or built from other meshes.
+        MeshError: a file given in `meshes` cannot be read.
     """
-    raise NotImplementedError
+    path = Path(path)
+    where = f'table file {path}'
+    if not path.exists():
+        raise TableError(f'{where} not found; check the path or build one with '
+                         '`kneeseat build`')
+    if not path.is_file():
+        raise TableError(f'{where} is not a regular file; give the path of a .npz table')
+    try:
+        npz = np.load(path, allow_pickle=False)
+    except _CORRUPT as err:
+        raise TableError(f'{where} is not a readable table (.npz): {err}; it is truncated, '
+                         f'corrupt or another kind of file; {_REBUILD}') from None
+    if not isinstance(npz, np.lib.npyio.NpzFile):
+        raise TableError(f'{where} holds a single array, not a table (.npz); {_REBUILD}')
+    with npz:
+        names = set(npz.files)
+        if 'metadata' not in names:
+            raise TableError(f'{where} has no metadata array; it is not a kneeseat table; '
+                             f'{_REBUILD}')
+        raw = _read_member(npz, 'metadata', where)
+        if raw.dtype.kind != 'U' or raw.shape != ():
+            raise TableError(f'{where}: metadata is a {raw.dtype} array of shape {raw.shape}, '
+                             f'expected a JSON string; {_REBUILD}')
+        try:
+            meta = json.loads(str(raw[()]))
+        except ValueError as err:
+            raise TableError(f'{where}: metadata is not valid JSON ({err}); the file is '
+                             f'corrupt or modified; {_REBUILD}') from None
+        _check_schema(meta, where)
+        missing = [n for n in ARRAY_NAMES if n not in names]
+        extra = sorted(names - set(ARRAY_NAMES) - {'metadata'})
+        if missing or extra:
+            what = '; '.join(([f'missing {", ".join(missing)}'] if missing else [])
+                             + ([f'unexpected {", ".join(extra)}'] if extra else []))
+            raise TableError(f'{where}: arrays {what}; not a {SCHEMA} table; {_REBUILD}')
+        loaded = {n: _read_member(npz, n, where) for n in ARRAY_NAMES}
+    _check_metadata(meta, where)
+    stored = meta.get('arrays_sha256')
+    if not isinstance(stored, str):
+        raise TableError(f'{where}: metadata has no arrays_sha256; {_REBUILD}')
+    nbodies = len(meta['bodies'])
+    for name in ('position', 'orientation', 'converged', 'iterations'):
+        if loaded[name].ndim < 1 or loaded[name].shape[0] != nbodies:
+            raise TableError(f'{where}: array {name!r} has shape {loaded[name].shape} but the '
+                             f'metadata lists {nbodies} bodies; {_REBUILD}')
+    arrays = _check_arrays(loaded, nbodies, where)
+    actual = _hash_arrays(arrays)
+    if actual != stored:
+        raise TableError(f'{where}: arrays do not match their SHA-256 (stored {stored[:12]}, '
+                         f'computed {actual[:12]}): corrupt or modified; {_REBUILD}')
+    if meshes:
+        _check_meshes(meta, meshes, where)
+    for a in arrays.values():
+        a.flags.writeable = False
+    table = PoseTable(arrays['flexion'], arrays['varus'], arrays['position'],
+                      arrays['orientation'], arrays['converged'], arrays['iterations'], meta)
+    _grid_of(table)
+    return table
 
 
-_ = np
+def _read_member(npz: Any, name: str, where: str) -> np.ndarray:
+    try:
+        return np.asarray(npz[name])
+    except _CORRUPT as err:
+        raise TableError(f'{where} is corrupt (array {name!r}: {err}); {_REBUILD}') from None
+
+
+def _check_meshes(meta: dict[str, Any], meshes: dict[str, Path], where: str) -> None:
+    entries = {b['name']: b for b in meta['bodies']}
+    ref = meta['reference']
+    if isinstance(ref.get('name'), str):
+        entries.setdefault(ref['name'], ref)
+    for name, mesh in meshes.items():
+        entry = entries.get(name)
+        if entry is None:
+            raise TableError(f'{where} has no body named {name!r} (bodies: '
+                             f'{", ".join(entries)}); check the mesh names you pass')
+        want = entry.get('mesh_sha256')
+        if not isinstance(want, str):
+            raise TableError(f'{where} records no SHA-256 for the mesh of {name!r}, so it '
+                             f'cannot be checked; {_REBUILD}')
+        try:
+            got = file_sha256(Path(mesh))
+        except OSError as err:
+            raise MeshError(f'mesh file {mesh} for {name!r} cannot be read '
+                            f'({err.strerror or err}); check the path') from None
+        if got != want:
+            raise TableError(f'{where} was built from other meshes: {name!r} mesh {mesh} has '
+                             f'SHA-256 {got[:12]}, the table expects {want[:12]} (built from '
+                             f'{entry.get("mesh", "?")}); rebuild the table from these meshes '
+                             'or pass the ones it was built from')
+
+
+# ------------------------------------------------------------------- describe / export
+
+def _grid_text(values_rad: Floats) -> str:
+    deg = np.degrees(np.asarray(values_rad, dtype=np.float64))
+    if deg.size == 1:
+        return f'{deg[0]:g} deg (1 value)'
+    steps = np.diff(deg)
+    if np.allclose(steps, steps[0], rtol=1e-9, atol=1e-9):
+        step = f'step {steps[0]:g}'
+    else:
+        step = f'non-uniform steps {steps.min():g} to {steps.max():g}'
+    return f'{deg[0]:g} to {deg[-1]:g} deg, {step}, {deg.size} values'
+
+
+def describe(table: PoseTable) -> str:
+    """Human summary of a table for `kneeseat info` (several lines, no trailing newline)."""
+    meta = table.metadata
+    ref = meta.get('reference', {})
+    lines = [f'schema:     {meta.get("schema", "?")} '
+             f'(kneeseat {meta.get("kneeseat_version", "?")})',
+             f'built:      {meta.get("built", "?")}',
+             f'arrays:     sha256 {str(meta.get("arrays_sha256", "?"))[:12]}',
+             f'reference:  {ref.get("name", "?")} (frame {ref.get("frame", "?")}, mesh '
+             f'{ref.get("mesh", "?")}, sha256 {str(ref.get("mesh_sha256", "?"))[:12]})',
+             f'flexion:    {_grid_text(table.flexion_rad)}',
+             f'varus:      {_grid_text(table.varus_rad)}']
+    axes = meta.get('axes')
+    if isinstance(axes, dict):
+        lines.append('axes:       ' + ', '.join(
+            f'{k} {np.round(np.asarray(axes[k], dtype=float), 4).tolist()}'
+            for k in ('flexion', 'varus', 'long') if k in axes))
+    lines.append(f'bodies:     {len(table.bodies)}')
+    conv = np.asarray(table.converged, dtype=bool)
+    iters = np.asarray(table.iterations)
+    for b, body in enumerate(meta['bodies']):
+        c = conv[b]
+        lines.append(f'  {body["name"]}: frame {body["frame"]}, mesh {body.get("mesh", "?")} '
+                     f'(sha256 {str(body.get("mesh_sha256", "?"))[:12]})')
+        lines.append(f'    converged {100.0 * c.mean():.1f}% ({int(c.sum())}/{c.size}), '
+                     f'iterations median {float(np.median(iters[b])):g} max {int(iters[b].max())}')
+    settle = meta.get('settle')
+    if isinstance(settle, dict) and settle:
+        lines.append('settle:     ' + ', '.join(f'{k}={v}' for k, v in settle.items()))
+    summary = meta.get('summary')
+    if isinstance(summary, dict) and summary:
+        lines.append('summary:    ' + ', '.join(f'{k}={v}' for k, v in summary.items()))
+    return '\n'.join(lines)
+
+
+def lookup_json(table: PoseTable, lookup: Lookup, flexion_rad: float | None = None,
+                varus_rad: float | None = None) -> dict[str, Any]:
+    """JSON-ready dict of one lookup for `kneeseat lookup --json`.
+
+    Shape: {"reference_frame", "table_sha256", "clamped", ["flexion_rad", "varus_rad"],
+    "bodies": [{"name", "frame", "position" [3] m, "orientation" [x, y, z, w],
+    "nonconverged"}]}. The request angles are included when given.
+    """
+    out: dict[str, Any] = {'reference_frame': table.reference_frame,
+                           'table_sha256': table.metadata.get('arrays_sha256'),
+                           'clamped': bool(lookup.clamped)}
+    if flexion_rad is not None:
+        out['flexion_rad'] = float(flexion_rad)
+    if varus_rad is not None:
+        out['varus_rad'] = float(varus_rad)
+    out['bodies'] = [
+        {'name': name, 'frame': frame, 'position': [float(x) for x in lookup.position_m[b]],
+         'orientation': [float(x) for x in lookup.orientation_xyzw[b]],
+         'nonconverged': bool(lookup.nonconverged[b])}
+        for b, (name, frame) in enumerate(zip(table.bodies, table.body_frames))]
+    return out
+
+
+def export_csv(table: PoseTable, path: Path) -> None:
+    """Write one CSV row per (body, flexion, varus), atomically.
+
+    Columns `CSV_COLUMNS`: body, grid flexion and varus (deg), then the patent's six fields:
+    the body's position x, y, z (m, reference frame) and its absolute orientation decomposed
+    with the table's axes (`KneeAxes.decompose`) into angles about the flexion, varus and
+    long axes (deg); then converged (true/false) and iterations.
+
+    Raises:
+        TableError: the file cannot be written (nothing is left behind).
+    """
+    path = Path(path)
+    pos = np.asarray(table.position_m, dtype=np.float64)
+    rot = matrix_from_quat(np.asarray(table.orientation_xyzw, dtype=np.float64))
+    angles = np.degrees(np.stack(table.axes.decompose(rot), axis=-1))   # (B, F, V, 3)
+    fdeg = np.degrees(np.asarray(table.flexion_rad, dtype=np.float64))
+    vdeg = np.degrees(np.asarray(table.varus_rad, dtype=np.float64))
+    conv = np.asarray(table.converged, dtype=bool)
+    iters = np.asarray(table.iterations)
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator='\n')
+    writer.writerow(CSV_COLUMNS)
+    for b, name in enumerate(table.bodies):
+        for i, fd in enumerate(fdeg.tolist()):
+            for j, vd in enumerate(vdeg.tolist()):
+                writer.writerow([name, f'{fd:.12g}', f'{vd:.12g}',
+                                 *(f'{x:.12g}' for x in pos[b, i, j].tolist()),
+                                 *(f'{x:.12g}' for x in angles[b, i, j].tolist()),
+                                 'true' if conv[b, i, j] else 'false', int(iters[b, i, j])])
+    data = text.getvalue().encode()
+
+    def save(fh: BinaryIO) -> None:
+        fh.write(data)
+
+    try:
+        _atomic_write(path, save)
+    except OSError as err:
+        raise TableError(f'cannot write CSV {path}: {err.strerror or err}; check that the '
+                         'directory exists, is writable and has free space') from err
