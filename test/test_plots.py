@@ -227,3 +227,45 @@ def test_render_of_large_meshes_is_quick(tmp_path: Path) -> None:
     render_table(make_table(), {'femur': femur, 'tibia': tibia, 'patella': patella},
                  tmp_path / 'big.png')
     assert time.perf_counter() - started < 10.0
+
+
+DM = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'tka_dm'
+
+
+@pytest.mark.slow
+def test_render_of_the_real_knee_implants(tmp_path: Path) -> None:
+    """The DM implants (24k, 53k, 19k triangles) swing with flexion and render quickly."""
+    if not DM.is_dir():
+        pytest.skip(f'real knee geometry not found at {DM} (shared data absent)')
+    meshes = {'femur': trimesh.load_mesh(DM / 'femoral_component.stl'),
+              'tibia': trimesh.load_mesh(DM / 'tibial_insert.stl'),
+              'patella': trimesh.load_mesh(DM / 'patellar_button.stl')}
+    table = make_table()
+    knee = table.axes
+    flexion = table.flexion_rad
+    spin = np.radians(10.0) * flexion / (np.pi / 2)
+    tibia = quat_from_matrix(knee.orientation(flexion, np.zeros_like(flexion), spin))
+    patella = quat_from_matrix(knee.orientation(flexion / 2, np.zeros_like(flexion)))
+    orientation = np.empty_like(table.orientation_xyzw)
+    orientation[0], orientation[1] = tibia[:, None], patella[:, None]
+    table = PoseTable(table.flexion_rad, table.varus_rad, np.zeros_like(table.position_m),
+                      orientation, table.converged, table.iterations, table.metadata)
+    views: tuple[Literal['lateral', 'anterior'], ...] = ('lateral', 'anterior')
+    for view in views:
+        started = time.perf_counter()
+        out = render_table(table, meshes, tmp_path / f'{view}.png', view=view)
+        assert time.perf_counter() - started < 10.0
+        assert imread(out)[..., :3].std() > 0.05
+
+
+def test_simplification_keeps_the_shape_within_budget() -> None:
+    """Vertex clustering: at most the budget, same bounding box to within a cell or two."""
+    from kneeseat_core.plots import _simplified
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.03)        # 20,480 faces
+    vertices, faces, closed = _simplified(sphere, 2000)
+    assert closed and 500 < len(faces) <= 2000
+    cell = np.sqrt(2.0 * sphere.area / 2000)
+    assert np.allclose(vertices.min(axis=0), sphere.bounds[0], atol=2 * cell)
+    assert np.allclose(vertices.max(axis=0), sphere.bounds[1], atol=2 * cell)
+    radius = np.linalg.norm(vertices, axis=1)
+    assert np.all(np.abs(radius - 0.03) < cell)                           # still a sphere
