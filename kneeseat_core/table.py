@@ -107,11 +107,10 @@ class _Grid:
                  'nvar', 'di', 'dj', 'nodes', 'signs', 'unconverged', 'nbodies')
 
     def __init__(self, table: PoseTable) -> None:
-        fx = np.asarray(table.flexion_rad, dtype=np.float64)
-        vx = np.asarray(table.varus_rad, dtype=np.float64)
-        pos = np.asarray(table.position_m, dtype=np.float64)
-        quat = np.asarray(table.orientation_xyzw, dtype=np.float64)
-        conv = np.asarray(table.converged, dtype=bool)
+        nbodies = np.shape(table.position_m)[0] if np.ndim(table.position_m) else 0
+        arrays = _check_arrays(_table_arrays(table), nbodies, 'cannot interpolate pose table')
+        fx, vx = arrays['flexion'], arrays['varus']
+        pos, quat, conv = arrays['position'], arrays['orientation'], arrays['converged']
         nb, nfx, nvx = pos.shape[:3]
         self.fx, self.vx = fx.tolist(), vx.tolist()
         self.f_lo, self.f_hi = self.fx[0], self.fx[-1]
@@ -139,6 +138,11 @@ class _Grid:
 
 
 def _grid_of(table: PoseTable) -> _Grid:
+    """The table's interpolation data, built (and the arrays checked) on first use.
+
+    Raises:
+        TableError: the arrays are not a valid table (shapes, NaN, grid, quaternions).
+    """
     grid = table._grid
     if grid is None:
         grid = _Grid(table)
@@ -210,6 +214,7 @@ class PoseTable:
             KneeseatError: an angle is NaN or infinite.
             ConfigError: `out_of_range` is neither 'clamp' nor 'drop'.
             OutOfRangeError: outside the grid and `out_of_range` is 'drop'.
+            TableError: (first call only) the arrays are not a valid table.
         """
         g = self._grid
         if g is None:
@@ -526,6 +531,9 @@ def read_table(path: Path, meshes: dict[str, Path] | None = None) -> PoseTable:
         raise TableError(f'{where} is not a regular file; give the path of a .npz table')
     try:
         npz = np.load(path, allow_pickle=False)
+    except PermissionError:
+        raise TableError(f'{where} cannot be read (permission denied); check its '
+                         'permissions') from None
     except _CORRUPT as err:
         raise TableError(f'{where} is not a readable table (.npz): {err}; it is truncated, '
                          f'corrupt or another kind of file; {_REBUILD}') from None

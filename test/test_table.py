@@ -498,6 +498,8 @@ def test_invalid_contents_rejected_on_write_and_on_read(table: PoseTable, tmp_pa
     bad = _rehashed(with_hash(table), **{key: value})
     with pytest.raises(TableError, match='cannot write table: ' + message):
         write_table(tmp_path / 'w.npz', bad)
+    with pytest.raises(TableError, match='cannot interpolate pose table: ' + message):
+        bad.interpolate(-0.5, 0.0)
     assert leftovers(tmp_path, set()) == []
     path = tmp_path / 'r.npz'
     arrays = {'flexion': bad.flexion_rad, 'varus': bad.varus_rad, 'position': bad.position_m,
