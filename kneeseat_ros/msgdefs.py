@@ -8,6 +8,13 @@ text from `<share>/<pkg>/msg/<Type>.msg` and the RIHS01 type hash from
 Schema text (rosbag2 Jazzy, `ros2msg` encoding): the root type's `.msg` text, then for
 each dependency, depth-first, sorted by name within one definition, each type once:
 ``'\\n' + '=' * 80 + '\\nMSG: pkg/Type\\n' + text``.
+
+`serialize` writes a message as CDR (little endian, the encapsulation ROS 2 uses) with
+zeroed alignment padding. rclpy's `serialize_message` (rmw_fastrtps, Jazzy) leaves the
+padding bytes uninitialised and appends junk after messages with sequences (it reports the
+estimated, not the written, length): rosbags rejects those bytes ("CDR message size
+mismatch") and they differ from run to run. The bytes here are the same as rclpy's apart
+from that, and `rclpy.serialization.deserialize_message` reads them back.
 """
 from __future__ import annotations
 
@@ -15,15 +22,17 @@ import functools
 import importlib
 import json
 import re
+import struct
 from pathlib import Path
 from typing import Any
 
 from ament_index_python.packages import get_package_share_directory, PackageNotFoundError
+from rosidl_parser import definition as idl
 
 from kneeseat_core.errors import KneeseatError
 
 __all__ = ['MessageTypeError', 'split_type', 'message_class', 'message_definition',
-           'type_hash']
+           'type_hash', 'serialize']
 
 # Field types that are not messages (rosidl primitive types and their ROS 1 aliases).
 PRIMITIVES = frozenset({
@@ -141,3 +150,89 @@ def type_hash(msg_type: str) -> str:
     except (OSError, ValueError, KeyError, TypeError, StopIteration):
         raise MessageTypeError(f'no RIHS01 type hash for {msg_type!r} in {path}; '
                                f'reinstall the {package} wheel') from None
+
+
+# -- CDR ---------------------------------------------------------------------------------
+CDR_HEADER = b'\x00\x01\x00\x00'      # CDR, little endian, no options
+_BASIC = {                              # IDL basic type -> struct format (size = alignment)
+    'boolean': '?', 'octet': 'B', 'char': 'B', 'uint8': 'B', 'int8': 'b',
+    'int16': 'h', 'uint16': 'H', 'int32': 'i', 'uint32': 'I', 'int64': 'q', 'uint64': 'Q',
+    'float': 'f', 'double': 'd',
+}
+
+
+class _CdrWriter:
+    def __init__(self) -> None:
+        self.buf = bytearray()
+
+    def align(self, size: int) -> None:
+        self.buf.extend(b'\x00' * (-len(self.buf) % size))
+
+    def basic(self, fmt: str, value: Any) -> None:
+        if isinstance(value, (bytes, bytearray)):
+            value = value[0]
+        elif fmt == 'B' and isinstance(value, str):
+            value = ord(value)
+        size = struct.calcsize(fmt)
+        self.align(size)
+        self.buf.extend(struct.pack('<' + fmt, value))
+
+    def basics(self, fmt: str, values: Any) -> None:
+        values = list(values)
+        if not values:
+            return
+        if isinstance(values[0], (bytes, bytearray)):
+            values = [v[0] for v in values]
+        self.align(struct.calcsize(fmt))
+        self.buf.extend(struct.pack(f'<{len(values)}{fmt}', *values))
+
+    def string(self, value: str) -> None:
+        data = value.encode('utf-8') + b'\x00'
+        self.basic('I', len(data))
+        self.buf.extend(data)
+
+
+def _write_value(out: _CdrWriter, slot: Any, value: Any) -> None:
+    if isinstance(slot, idl.BasicType):
+        out.basic(_basic_format(slot), value)
+    elif isinstance(slot, idl.AbstractString):
+        out.string(value)
+    elif isinstance(slot, idl.NamespacedType):
+        _write_struct(out, value)
+    elif isinstance(slot, (idl.Array, idl.AbstractSequence)):
+        items = value
+        if isinstance(slot, idl.AbstractSequence):
+            out.basic('I', len(items))
+        inner = slot.value_type
+        if isinstance(inner, idl.BasicType):
+            out.basics(_basic_format(inner), items)
+        else:
+            for item in items:
+                _write_value(out, inner, item)
+    else:
+        raise MessageTypeError(f'cannot serialise field type {slot!r}; wide strings and long '
+                               'double are not supported by the kneeseat recorder')
+
+
+def _basic_format(slot: Any) -> str:
+    try:
+        return _BASIC[slot.typename]
+    except KeyError:
+        raise MessageTypeError(f'cannot serialise basic type {slot.typename!r}; it is not '
+                               'used by the kneeseat topics') from None
+
+
+def _write_struct(out: _CdrWriter, msg: Any) -> None:
+    for name, slot in zip(msg.get_fields_and_field_types(), type(msg).SLOT_TYPES):
+        _write_value(out, slot, getattr(msg, name))
+
+
+def serialize(msg: Any) -> bytes:
+    """CDR bytes (little endian, 4-byte encapsulation header) of an rclpy message.
+
+    Raises:
+        MessageTypeError: the message uses a field type the writer does not support.
+    """
+    out = _CdrWriter()
+    _write_struct(out, msg)
+    return CDR_HEADER + bytes(out.buf)

@@ -32,12 +32,11 @@ from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import __version__ as MCAP_VERSION, CompressionType, IndexType, Writer
 from rclpy.qos import QoSProfile
-from rclpy.serialization import serialize_message
 import yaml
 
 from kneeseat_core.errors import KneeseatError
 
-from .msgdefs import message_definition, MessageTypeError, type_hash
+from .msgdefs import message_definition, MessageTypeError, serialize, type_hash
 
 __all__ = ['RecorderError', 'BagRecorder', 'TopicSpec', 'RecoveryReport', 'qos_to_dicts',
            'read_readable', 'recover', 'DEFAULT_QOS', 'METADATA_NAME']
@@ -238,7 +237,7 @@ class BagRecorder:
                 self._guard(self._register, self._open, spec)
 
     def write(self, topic: str, message: Any, log_time_ns: int, publish_time_ns: int) -> None:
-        """Serialise an rclpy message and append it to the bag.
+        """Serialise an rclpy message (CDR, see `msgdefs.serialize`) and append it.
 
         Never raises on an I/O error: sets `error`, stops writing and returns.
 
@@ -250,7 +249,7 @@ class BagRecorder:
         Raises:
             RecorderError: the topic was never added.
         """
-        self.write_raw(topic, serialize_message(message), log_time_ns, publish_time_ns)
+        self.write_raw(topic, serialize(message), log_time_ns, publish_time_ns)
 
     def write_raw(self, topic: str, data: bytes, log_time_ns: int,
                   publish_time_ns: int) -> None:
