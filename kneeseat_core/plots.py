@@ -95,10 +95,13 @@ def plot_table(table: PoseTable, out: Path, *, varus_deg: Sequence[float] | None
         inches at `DPI`.
 
     Raises:
-        ConfigError: a varus value is outside the grid or not finite, `out` does not end
-            in .png, or `out` cannot be written.
+        ConfigError: a varus value is outside the grid or not finite, the table has no
+            moving body, `out` does not end in .png, or `out` cannot be written.
     """
     out = _checked_out(out)
+    if not table.bodies:
+        raise ConfigError('the table has no moving bodies, so there is nothing to plot; '
+                          'build it with at least one moving body')
     flexion_deg = np.degrees(np.asarray(table.flexion_rad, dtype=np.float64))
     grid_varus_deg = np.degrees(np.asarray(table.varus_rad, dtype=np.float64))
     columns = _varus_columns(grid_varus_deg, varus_deg)
