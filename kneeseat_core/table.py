@@ -604,7 +604,7 @@ def _check_meshes(meta: dict[str, Any], meshes: dict[str, Path], where: str) -> 
             raise TableError(f'{where} has no body named {name!r} (bodies: '
                              f'{", ".join(entries)}); check the mesh names you pass')
         want = entry.get('mesh_sha256')
-        if not isinstance(want, str):
+        if not isinstance(want, str) or not want:
             raise TableError(f'{where} records no SHA-256 for the mesh of {name!r}, so it '
                              f'cannot be checked; {_REBUILD}')
         try:

@@ -555,6 +555,12 @@ def test_mesh_hashes_are_checked(tmp_path: Path) -> None:
         read_table(path, meshes={'fibula': files['other']})
     with pytest.raises(MeshError, match=r'mesh file .*gone\.stl .*cannot be read'):
         read_table(path, meshes={'tibial_insert': tmp_path / 'gone.stl'})
+    meta['bodies'][1]['mesh_sha256'] = ''
+    write_table(path, PoseTable(table.flexion_rad, table.varus_rad, table.position_m,
+                                table.orientation_xyzw, table.converged, table.iterations,
+                                meta))
+    with pytest.raises(TableError, match="records no SHA-256 for the mesh of 'patellar_button'"):
+        read_table(path, meshes=good)
 
 
 # ------------------------------------------------------------------------ atomic writes
