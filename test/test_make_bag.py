@@ -107,8 +107,8 @@ def test_gait_trajectory_shape() -> None:
     flexion, varus = np.degrees(track.flexion_rad), np.degrees(track.varus_rad)
     assert len(flexion) == 301
     assert -66.0 < flexion.min() < -60.0 and -8.0 < flexion.max() < -3.0
-    assert np.allclose(flexion[:100], flexion[100:200]) and np.allclose(flexion[:100],
-                                                                         flexion[200:300])
+    assert np.allclose(flexion[:100], flexion[100:200])
+    assert np.allclose(flexion[:100], flexion[200:300])
     peak = np.argmin(flexion[:100])
     assert 65 <= peak <= 78                               # swing peak late in the cycle
     loading = np.argmin(flexion[:40])

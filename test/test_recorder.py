@@ -235,7 +235,7 @@ def test_unknown_type_and_topic_raise(tmp_path: Path) -> None:
             rec.write('/knee/pose', pose(0), T0, T0)
 
 
-DISK_FULL = textwrap.dedent('''
+DISK_FULL = textwrap.dedent("""
     import json, resource, signal, sys
     from pathlib import Path
     from geometry_msgs.msg import PoseStamped
@@ -253,7 +253,7 @@ DISK_FULL = textwrap.dedent('''
     rec.close()
     rec.close()
     print(json.dumps({'error': rec.error, 'count': rec.message_count, 'last': counts[-50:]}))
-''')
+""")
 
 
 def test_disk_full_sets_error_and_stops(tmp_path: Path) -> None:
@@ -269,7 +269,7 @@ def test_disk_full_sets_error_and_stops(tmp_path: Path) -> None:
     assert '\n' not in result['error']
 
 
-WRITER = textwrap.dedent('''
+WRITER = textwrap.dedent("""
     import signal, sys, threading
     from pathlib import Path
     from geometry_msgs.msg import PoseStamped
@@ -288,7 +288,7 @@ WRITER = textwrap.dedent('''
             print('ready', flush=True)
     rec.close()
     print(rec.message_count, flush=True)
-''')
+""")
 
 
 def _start_writer(tmp_path: Path, bag: Path) -> subprocess.Popen[str]:
