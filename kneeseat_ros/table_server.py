@@ -42,6 +42,7 @@ from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import (qos_profile_sensor_data, QoSDurabilityPolicy, QoSHistoryPolicy,
@@ -60,6 +61,7 @@ from kneeseat_ros.conversions import (
 __all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'STATUS_NAME', 'ServerParams', 'TableServer',
            'load_table', 'main']
 
+RCLError = _rclpy.RCLError
 INPUT_QOS = qos_profile_sensor_data
 OUTPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                         reliability=QoSReliabilityPolicy.RELIABLE,
@@ -487,6 +489,12 @@ def main(args: list[str] | None = None) -> int:
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # rclpy's SIGINT/SIGTERM handler shuts the context down; if that lands between two
+        # executor iterations, spin raises RCLError ('context is not valid') instead of
+        # ExternalShutdownException. That is a clean stop too; anything else is a bug.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
