@@ -432,6 +432,7 @@ class _DefaultSearch:
         step = p.step_m
         blocked = Contacts.empty()
         last_blocked: Floats | None = None
+        refine_dir: Floats | None = None     # last direction of a D1' (mean-normal) move
 
         def moved(base: Pose, x: Floats) -> Pose:
             """Slide by x[0] e1 + x[1] e2 and turn by x[2] / arm about the centre axis."""
@@ -465,11 +466,26 @@ class _DefaultSearch:
                                 np.concatenate([floor.normals, blocked.normals]))
             grads = gradients(contacts, pose)
             direction = None
+            refining = False
             if len(grads) and step >= finest:
                 g = _min_norm_point(grads)
                 norm = float(np.linalg.norm(g))
-                if norm > 1e-3 and float(np.min(grads @ g)) > 0.0:
+                if norm > _FLAT_SLOPE and float(np.min(grads @ g)) > 0.0:
                     direction = g / norm
+                else:
+                    # D1': one smooth patch straddling the optimum balances the hull but
+                    # not the patch's mean normal; follow the mean to centre the patch
+                    g = grads.mean(axis=0)
+                    norm = float(np.linalg.norm(g))
+                    if norm > _FLAT_SLOPE and not len(blocked.points):
+                        direction = g / norm
+                        refining = True
+                        if refine_dir is not None:
+                            # bracket the patch's centre: shrink when it was passed,
+                            # grow (slower than the shrink) while it is still ahead
+                            step *= 0.5 if float(direction @ refine_dir) < 0.0 else 1.5
+                            step = min(step, p.step_m)
+                        refine_dir = direction
             if direction is None:
                 if step >= finest and len(blocked.points):
                     # the blocking contacts balance the floor at this step: refine
@@ -485,6 +501,9 @@ class _DefaultSearch:
                 blocked = Contacts.empty()
                 step = max(step, 2.0 * finest)
                 continue
+            log.debug('iteration %d: step %.4f mm, %s move %s, %d contacts', s.iterations,
+                      step * 1e3, 'centring' if refining else 'hull', np.round(direction, 3),
+                      len(grads))
             target = moved(pose, step * direction)
             base = pose
             if s.pair.collides(target):
@@ -506,7 +525,7 @@ class _DefaultSearch:
             else:
                 blocked = Contacts.empty()
             last_blocked = None
-            expected = step * float(np.min(grads @ direction))
+            expected = max(step * float(np.min(grads @ direction)), 0.0)
             dropped = drop_from(target, expected)
             if dropped is None:
                 raise NoContactError(s._travel_limit(target))
@@ -517,8 +536,10 @@ class _DefaultSearch:
                 blocked = Contacts.empty()
                 continue
             pose, floor = new_pose, new_floor
-            if gain < tol:
-                step *= 0.5
+            if not refining:
+                refine_dir = None
+                if gain < tol:
+                    step *= 0.5
         return s._result(pose, False, f'iteration cap ({p.max_iterations}) reached before '
                          'rest was verified', floor, started, backed)
 
@@ -537,6 +558,9 @@ class _DefaultSearch:
                     return b[0], s._contacts(b[1])
         return None
 
+
+# Depth gained per metre of lateral motion below which the contact set counts as balanced.
+_FLAT_SLOPE = 1e-3
 
 _PROBE_DIRECTIONS = [np.array(d, dtype=float)
                      for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)]

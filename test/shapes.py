@@ -37,7 +37,7 @@ def heightfield_solid(surface: Surface, half_x: float, half_z: float, n: int = 1
     return mesh
 
 
-def sphere(radius: float, subdivisions: int = 4) -> trimesh.Trimesh:
+def sphere(radius: float, subdivisions: int = 5) -> trimesh.Trimesh:
     """Icosphere centred on the origin."""
     return trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
 
