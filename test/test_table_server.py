@@ -16,7 +16,7 @@ import sys
 import time
 from typing import Any
 
-from conftest import spin_until, synthetic_table, write_synthetic_table
+from conftest import ros_env, spin_until, synthetic_table, write_synthetic_table
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 import numpy as np
@@ -47,10 +47,10 @@ class ServerProcess:
     """The installed table_server in its own process; output goes to files."""
 
     def __init__(self, tmp_path: Path, domain_id: int, table: Path, *params: str,
-                 executable: Path = TABLE_SERVER, env: dict[str, str] | None = None) -> None:
-        from conftest import ros_env
+                 executable: Path = TABLE_SERVER, env: dict[str, str] | None = None,
+                 ros_args: list[str] | None = None) -> None:
         self.out, self.err = tmp_path / 'server.out', tmp_path / 'server.err'
-        args = [str(executable), '--ros-args', '-p', f'table:={table}']
+        args = [str(executable), '--ros-args', *(ros_args or []), '-p', f'table:={table}']
         for p in params:
             args += ['-p', p]
         with open(self.out, 'wb') as out, open(self.err, 'wb') as err:
