@@ -1,0 +1,417 @@
+"""The embedded default knee: procedural femur, tibia and patella meshes made by our own code.
+
+Frame (the same as the real TKA data): metres, right knee, X anterior, Y superior, Z lateral
+(medial is -Z). The femur is the fixed reference. The origin is the centre of the medial
+condyle's sagittal arc, i.e. on the flexion axis (+Z): rotating the tibia about +Z through
+the origin by a negative flexion angle swings its distal end posteriorly, and it keeps
+meeting the condyles from 0 to -90 deg.
+
+Every mesh is a closed parametric surface built on a regular grid, so it is watertight and
+consistently wound by construction, has no degenerate triangle and no randomness (the same
+bytes every run):
+- femur: a tube about the flexion axis. Each sagittal slice (fixed z) is star-shaped about
+  the axis, its boundary radius `rho(phi, z)` the smooth maximum of a few parts: two
+  condyles (tori about Z: medial sagittal radius 24 mm, lateral 21 mm, different widths),
+  a core that forms the intercondylar notch, a trochlea (a larger arc anteriorly, with a
+  groove) and a shaft stub up to y = 75 mm. The two ends are flat caps.
+- tibia and patella: solids between two height fields over an elliptical footprint (polar
+  grid), joined by a short rim wall. Tibia: a concave medial dish, a flatter lateral dish,
+  an intercondylar eminence (two spines) that sits in the notch, a metaphysis flaring to a
+  shaft stub down to y = -95 mm. Patella: a domed anterior face and a posterior face with a
+  central vertical ridge matching the trochlear groove.
+
+Secondary motion (why settling moves more than the push):
+- The lateral condyle's sagittal arc is centred 2.25 mm posterior and 2.25 mm distal of
+  the flexion axis (the medial one on it). Seen from the tibia, the lateral condyle's lowest
+  point therefore moves 4.5 mm anteriorly relative to the medial one between 0 and -90 deg
+  of flexion, and the tibia, whose two dishes follow the two condyles, turns about its long
+  axis: internal rotation grows with flexion (screw-home read the other way: the tibia is
+  externally rotated in extension). Turning about the medial (pivot) dish also shifts the
+  tibia antero-posteriorly.
+- The dishes are 6 mm further apart than the condyles, so the tibia wedges between the two
+  condyles: at the rest pose both condyles touch (each on the inner wall of its dish), and
+  the height change of the offset lateral arc is taken up by a small medio-lateral shift.
+
+Dimensions below are millimetres (suffix `_MM`); the meshes are scaled to metres at the end.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+import functools
+import hashlib
+import os
+from pathlib import Path
+import tempfile
+
+import numpy as np
+import trimesh
+
+from .typed import Floats
+
+__all__ = ['DEFAULT_PUSH', 'PATELLA_FLEXION_FRACTION', 'default_knee', 'write_default_knee',
+           'stl_bytes', 'NEUTRAL_GAP_MM', 'MEDIAL_CONDYLE_Z_MM', 'LATERAL_CONDYLE_Z_MM']
+
+DEFAULT_PUSH = {'tibia': (0.0, 1.0, 0.0), 'patella': (-1.0, 0.0, 0.0)}
+"""Unit push direction of each moving body at neutral (femur frame): tibia up, patella back."""
+
+PATELLA_FLEXION_FRACTION = 0.6
+"""The patella's push direction (and start pose) turns about the flexion axis by this
+fraction of the flexion angle (patellofemoral flexion is about 0.6-0.7 of knee flexion)."""
+
+NEUTRAL_GAP_MM = (0.5, 3.0)
+"""Designed range of the tibia-femur and patella-femur clearance at the identity pose."""
+
+_M_PER_MM = 1e-3
+
+# ---- femur (mm) ----------------------------------------------------------------------
+MEDIAL_CONDYLE_Z_MM = -25.0        # centre of the medial condyle's coronal profile
+LATERAL_CONDYLE_Z_MM = 23.0        # centre of the lateral condyle's coronal profile
+_MED_SAG_R_MM = 24.0               # medial sagittal radius, arc centred on the origin
+_LAT_SAG_R_MM = 21.0               # lateral sagittal radius
+_LAT_SAG_CENTRE_MM = (-2.25, -2.25)  # lateral arc centre (x, y): posterior and distal
+_MED_COR_R_MM = 18.0               # coronal radius of the medial condyle (its width: 36)
+_LAT_COR_R_MM = 16.0               # coronal radius of the lateral condyle (width: 32)
+_CORE_R_MM = 11.0                  # notch roof / end caps
+_TROCH_CENTRE_MM = (6.0, 6.0)      # trochlear arc centre (x, y)
+_TROCH_R_MM = 25.0
+_TROCH_Z_MM = -1.0                 # centre of the trochlea's medio-lateral extent
+_TROCH_HALF_WIDTH_MM = 32.0
+_GROOVE_Z_MM = -1.0                # trochlear groove line (z)
+_GROOVE_DEPTH_MM = 5.0
+_GROOVE_WIDTH_MM = 8.0             # gaussian width of the groove
+_LAT_FACET_RISE_MM = 1.5           # lateral trochlear facet stands higher than the medial
+_SHAFT_TOP_MM = 75.0
+_SHAFT_HALF_AP_MM = 14.0
+_SHAFT_Z_MM = -1.0
+_SHAFT_HALF_ML_MM = 17.0
+_FEMUR_Z_RANGE_MM = (-42.0, 38.0)
+_SMOOTH_MAX_K = 2.0                # 1/mm, sharpness of the blend between femur parts
+
+# ---- tibia (mm) -----------------------------------------------------------------------
+_MED_DISH_MM = (0.0, -28.0, -25.5)   # dish centre x, z and its bottom y
+_LAT_DISH_MM = (0.0, 26.0, -24.95)
+_MED_DISH_R_MM = (30.0, 24.0)        # sagittal, coronal radius (concave)
+_LAT_DISH_R_MM = (40.0, 30.0)        # flatter
+_DISH_DEPTH_MM = 5.0                 # dishes saturate at this depth towards the rim
+_EMINENCE_SPINES_Z_MM = (-5.0, 3.0)
+_EMINENCE_HEIGHT_MM = 7.5            # above the medial dish bottom
+_EMINENCE_SIGMA_MM = (7.0, 2.6)      # (x, z) gaussian widths of each spine
+_TIBIA_CENTRE_MM = (1.0, -2.0)       # footprint centre (x, z)
+_TIBIA_SEMI_MM = (25.0, 40.0)        # footprint semi-axes (x, z)
+_TIBIA_RIM_DROP_MM = 2.5             # rounding of the plateau rim
+_TIBIA_RIM_WALL_MM = 7.0             # height of the plateau's side wall
+_TIBIA_SHAFT_END_MM = -95.0
+_TIBIA_SHAFT_FRACTION = 0.42         # shaft radius as a fraction of the footprint
+
+# ---- patella (mm) ---------------------------------------------------------------------
+_PATELLA_CENTRE_MM = (8.0, _GROOVE_Z_MM)   # footprint centre (y, z)
+_PATELLA_SEMI_MM = (20.0, 22.0)            # footprint semi-axes (y, z)
+_PATELLA_GAP_MM = 1.5                      # clearance to the trochlea along x at neutral
+_PATELLA_RIDGE_RELIEF_MM = 0.6             # the ridge is this much shallower than the groove
+_PATELLA_THICKNESS_MM = 20.0
+
+# Grid resolution (chosen for 10k-40k triangles per mesh).
+_FEMUR_N_Z, _FEMUR_N_PHI = 96, 176
+_TIBIA_N_ANG, _TIBIA_N_TOP, _TIBIA_N_BOTTOM = 144, 44, 28
+_PATELLA_N_ANG, _PATELLA_N_FRONT, _PATELLA_N_BACK = 128, 24, 40
+
+
+def _smooth_max(parts: list[Floats], k: float = _SMOOTH_MAX_K) -> Floats:
+    """Log-sum-exp maximum of same-shaped arrays (mm): at most ln(n)/k above the max."""
+    stack = np.stack(parts)
+    top = stack.max(axis=0)
+    return top + np.log(np.exp(k * (stack - top)).sum(axis=0)) / k
+
+
+def _smoothstep(t: Floats) -> Floats:
+    """C1 step from 0 (t <= 0) to 1 (t >= 1)."""
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _ray_to_circle(phi: Floats, centre: tuple[float, float], radius: float) -> Floats:
+    """Distance (mm) from the origin along direction `phi` to a circle enclosing the origin."""
+    ux, uy = np.cos(phi), np.sin(phi)
+    proj = ux * centre[0] + uy * centre[1]
+    return proj + np.sqrt(proj * proj - (centre[0] ** 2 + centre[1] ** 2) + radius * radius)
+
+
+def _coronal_drop(z: Floats, centre: float, radius: float) -> Floats:
+    """How far (mm) a circular coronal profile falls below its crest; huge outside it."""
+    dz = np.abs(z - centre)
+    inside = np.sqrt(np.clip(radius * radius - dz * dz, 0.0, None))
+    return np.where(dz < radius, radius - inside, 1e3)
+
+
+def _superellipse_scale(u: Floats, power: float = 4.0) -> Floats:
+    """(1 - |u|^p)^(1/p) for |u| < 1, else 0: flat in the middle, rounded at the ends."""
+    base = np.clip(1.0 - np.abs(u) ** power, 0.0, None)
+    return base ** (1.0 / power)
+
+
+def femur_radius_mm(phi: Floats, z: Floats) -> Floats:
+    """Boundary radius (mm) of the femur's sagittal slice `z` (mm) in direction `phi` (rad).
+
+    `phi` is measured about +Z from +X (anterior): -pi/2 is distal, +-pi posterior, +pi/2
+    up the shaft. Each slice is star-shaped about the flexion axis.
+    """
+    phi, z = np.broadcast_arrays(np.asarray(phi, dtype=np.float64),
+                                 np.asarray(z, dtype=np.float64))
+    medial = _MED_SAG_R_MM - _coronal_drop(z, MEDIAL_CONDYLE_Z_MM, _MED_COR_R_MM)
+    lateral = (_ray_to_circle(phi, _LAT_SAG_CENTRE_MM, _LAT_SAG_R_MM)
+               - _coronal_drop(z, LATERAL_CONDYLE_Z_MM, _LAT_COR_R_MM))
+    core = np.full_like(phi, _CORE_R_MM)
+    # Trochlea: anterior only (fades out distally, before the notch), rounded at its ends.
+    anterior = _smoothstep((phi + np.radians(100.0)) / np.radians(25.0))
+    anterior = anterior * (1.0 - _smoothstep((phi - np.radians(110.0)) / np.radians(25.0)))
+    width = _superellipse_scale((z - _TROCH_Z_MM) / _TROCH_HALF_WIDTH_MM, 4.0)
+    groove = _GROOVE_DEPTH_MM * np.exp(-((z - _GROOVE_Z_MM) / _GROOVE_WIDTH_MM) ** 2)
+    facet = _LAT_FACET_RISE_MM * _smoothstep((z - _GROOVE_Z_MM) / 20.0)
+    trochlea = (_ray_to_circle(phi, _TROCH_CENTRE_MM, _TROCH_R_MM) + facet - groove)
+    trochlea = trochlea * anterior * width
+    # Shaft: a box [-a, a] x [0, top] in the slice, scaled down towards its ML ends.
+    s, c = np.sin(phi), np.cos(phi)
+    with np.errstate(divide='ignore'):
+        to_top = np.where(s > 1e-9, _SHAFT_TOP_MM / np.where(s > 1e-9, s, 1.0), 0.0)
+        to_side = _SHAFT_HALF_AP_MM / np.maximum(np.abs(c), 1e-9)
+    shaft = np.minimum(to_top, to_side) * _superellipse_scale(
+        (z - _SHAFT_Z_MM) / _SHAFT_HALF_ML_MM, 4.0)
+    return _smooth_max([medial, lateral, core, trochlea, shaft])
+
+
+def _femur_mesh_mm() -> tuple[Floats, np.ndarray]:
+    """Vertices (n, 3) mm and faces (m, 3) of the femur tube with flat end caps."""
+    z = np.linspace(*_FEMUR_Z_RANGE_MM, _FEMUR_N_Z)
+    phi = np.linspace(-np.pi, np.pi, _FEMUR_N_PHI, endpoint=False)
+    zz, pp = np.meshgrid(z, phi, indexing='ij')                     # (nz, nphi)
+    rho = femur_radius_mm(pp, zz)
+    ring = np.stack([rho * np.cos(pp), rho * np.sin(pp), zz], axis=-1).reshape(-1, 3)
+    caps = np.array([[0.0, 0.0, z[0]], [0.0, 0.0, z[-1]]])
+    vertices = np.vstack([ring, caps])
+    nz, nphi = _FEMUR_N_Z, _FEMUR_N_PHI
+    idx = np.arange(nz * nphi).reshape(nz, nphi)
+    a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)                  # slice i, phi j / j+1
+    c, d = idx[1:], np.roll(idx[1:], -1, axis=1)                    # slice i+1
+    side = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3),
+                           np.stack([a, d, c], -1).reshape(-1, 3)])
+    first, last = nz * nphi, nz * nphi + 1
+    j = np.arange(nphi)
+    cap0 = np.stack([np.full(nphi, first), (j + 1) % nphi, j], -1)
+    cap1 = np.stack([np.full(nphi, last), idx[-1, j], idx[-1, (j + 1) % nphi]], -1)
+    return vertices, np.concatenate([side, cap0, cap1]).astype(np.int64)
+
+
+HeightField = Callable[[Floats, Floats], Floats]
+
+
+def _polar_solid(top_r: Floats, bottom_r: Floats, n_ang: int, top_h: HeightField,
+                 bottom_h: HeightField) -> tuple[Floats, Floats, np.ndarray]:
+    """A solid between two height fields over the unit disc (polar grid), plus a rim wall.
+
+    Args:
+        top_r: (nt,) ring radii in (0, 1], ascending, last = 1 (rim).
+        bottom_r: (nb,) the same for the bottom surface.
+        n_ang: points per ring.
+        top_h, bottom_h: map (r, angle) arrays to heights; top must exceed bottom.
+    Returns:
+        Unit-disc coordinates (n, 2), heights (n,) and faces (m, 3) of the closed solid.
+    """
+    ang = np.linspace(0.0, 2.0 * np.pi, n_ang, endpoint=False)
+    uv_parts, h_parts, faces, rims = [], [], [], []
+    offset = 0
+    for rings, height, sign in ((top_r, top_h, 1), (bottom_r, bottom_h, -1)):
+        rr, aa = np.meshgrid(rings, ang, indexing='ij')             # (n_rings, n_ang)
+        pole_uv = np.zeros((1, 2))
+        uv = np.vstack([pole_uv, np.stack([rr * np.cos(aa), rr * np.sin(aa)], -1)
+                        .reshape(-1, 2)])
+        h = np.concatenate([height(np.zeros(1), np.zeros(1)), height(rr, aa).reshape(-1)])
+        idx = offset + 1 + np.arange(rr.size).reshape(rr.shape)
+        j = np.arange(n_ang)
+        fan = np.stack([np.full(n_ang, offset), idx[0, j], idx[0, (j + 1) % n_ang]], -1)
+        a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
+        c, d = idx[1:], np.roll(idx[1:], -1, axis=1)
+        quads = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3),
+                                np.stack([a, d, b], -1).reshape(-1, 3)])
+        part = np.concatenate([fan, quads])
+        faces.append(part if sign > 0 else part[:, ::-1])
+        uv_parts.append(uv)
+        h_parts.append(h)
+        offset += len(uv)
+        rims.append(idx[-1])
+    a, b = rims[0], np.roll(rims[0], -1)          # top rim
+    c, d = rims[1], np.roll(rims[1], -1)          # bottom rim, below it
+    faces.append(np.concatenate([np.stack([a, c, d], -1), np.stack([a, d, b], -1)]))
+    return np.vstack(uv_parts), np.concatenate(h_parts), np.concatenate(faces).astype(np.int64)
+
+
+def _dish(x: Floats, z: Floats, centre: tuple[float, float, float],
+          radii: tuple[float, float]) -> Floats:
+    """Height (mm) of a concave elliptic-paraboloid dish that flattens out towards the rim."""
+    q = ((x - centre[0]) ** 2 / (2.0 * radii[0]) + (z - centre[1]) ** 2 / (2.0 * radii[1]))
+    return centre[2] + _DISH_DEPTH_MM * (1.0 - np.exp(-q / _DISH_DEPTH_MM))
+
+
+def tibia_top_mm(x: Floats, z: Floats) -> Floats:
+    """Height (mm) of the tibial plateau (before the rim rounding) at (x, z) mm."""
+    lateral_share = 1.0 / (1.0 + np.exp(-(z - 0.0) / 2.5))
+    plateau = ((1.0 - lateral_share) * _dish(x, z, _MED_DISH_MM, _MED_DISH_R_MM)
+               + lateral_share * _dish(x, z, _LAT_DISH_MM, _LAT_DISH_R_MM))
+    sx, sz = _EMINENCE_SIGMA_MM
+    spines = sum(np.exp(-(z - zs) ** 2 / (2 * sz * sz)) for zs in _EMINENCE_SPINES_Z_MM)
+    base = _MED_DISH_MM[2] + _EMINENCE_HEIGHT_MM
+    eminence = base - (base - plateau) * (1.0 - np.minimum(
+        spines * np.exp(-x * x / (2 * sx * sx)), 1.0))
+    return np.maximum(plateau, eminence)
+
+
+def _tibia_mesh_mm() -> tuple[Floats, np.ndarray]:
+    cx, cz = _TIBIA_CENTRE_MM
+    ax, az = _TIBIA_SEMI_MM
+
+    def top(r: Floats, ang: Floats) -> Floats:
+        x, z = cx + ax * r * np.cos(ang), cz + az * r * np.sin(ang)
+        return tibia_top_mm(x, z) - _TIBIA_RIM_DROP_MM * _smoothstep((r - 0.8) / 0.2) ** 2
+
+    def bottom(r: Floats, ang: Floats) -> Floats:
+        x, z = cx + ax * np.cos(ang), cz + az * np.sin(ang)
+        rim = tibia_top_mm(x, z) - _TIBIA_RIM_DROP_MM - _TIBIA_RIM_WALL_MM
+        t = np.clip((r - _TIBIA_SHAFT_FRACTION) / (1.0 - _TIBIA_SHAFT_FRACTION), 0.0, 1.0)
+        flare = 1.0 - (1.0 - t) ** 5
+        return _TIBIA_SHAFT_END_MM + (rim - _TIBIA_SHAFT_END_MM) * flare
+
+    top_r = np.linspace(0.0, 1.0, _TIBIA_N_TOP + 1)[1:]
+    # Bottom rings: a few on the shaft's flat end, most where the flare is steep.
+    t = np.linspace(0.0, 1.0, _TIBIA_N_BOTTOM - 4 + 1)
+    flare_r = _TIBIA_SHAFT_FRACTION + (1.0 - _TIBIA_SHAFT_FRACTION) * t ** 2.0
+    bottom_r = np.concatenate([np.linspace(0.0, _TIBIA_SHAFT_FRACTION, 5)[1:-1],
+                               [_TIBIA_SHAFT_FRACTION * 0.999], flare_r[1:]])
+    uv, h, faces = _polar_solid(top_r, bottom_r, _TIBIA_N_ANG, top, bottom)
+    vertices = np.stack([cx + ax * uv[:, 0], h, cz + az * uv[:, 1]], axis=-1)
+    return vertices, faces
+
+
+@functools.cache
+def _trochlea_profile_mm() -> tuple[Floats, Floats]:
+    """The femur's anterior-most x (mm) against z over the patella's height range.
+
+    Returns:
+        (n,) z samples (mm) and (n,) x (mm): for each sagittal slice, the largest x of the
+        femur's boundary between the patella's lowest and highest y.
+    """
+    z = np.linspace(_PATELLA_CENTRE_MM[1] - _PATELLA_SEMI_MM[1] - 1.0,
+                    _PATELLA_CENTRE_MM[1] + _PATELLA_SEMI_MM[1] + 1.0, 181)
+    phi = np.linspace(-np.pi / 2, np.pi / 2, 721)
+    rho = femur_radius_mm(phi[None, :], z[:, None])                # (nz, nphi)
+    x, y = rho * np.cos(phi), rho * np.sin(phi)
+    lo = _PATELLA_CENTRE_MM[0] - _PATELLA_SEMI_MM[0]
+    hi = _PATELLA_CENTRE_MM[0] + _PATELLA_SEMI_MM[0]
+    x = np.where((y >= lo) & (y <= hi), x, -np.inf)
+    return z, x.max(axis=1)
+
+
+def patella_back_mm(y: Floats, z: Floats) -> Floats:
+    """x (mm) of the patella's posterior face at (y, z) mm, before the rim rounding.
+
+    It follows the trochlea's anterior-most profile (so its central vertical ridge fills
+    the groove) at `_PATELLA_GAP_MM`, with the ridge kept `_PATELLA_RIDGE_RELIEF_MM`
+    shallower than the groove, so that the patella bears on both facets.
+    """
+    _, z = np.broadcast_arrays(np.asarray(y, dtype=np.float64), np.asarray(z, dtype=np.float64))
+    z_s, x_s = _trochlea_profile_mm()
+    relief = _PATELLA_RIDGE_RELIEF_MM * np.exp(
+        -((z - _GROOVE_Z_MM) / (0.8 * _GROOVE_WIDTH_MM)) ** 2)
+    return np.interp(z, z_s, x_s) + _PATELLA_GAP_MM + relief
+
+
+def _patella_mesh_mm() -> tuple[Floats, np.ndarray]:
+    cy, cz = _PATELLA_CENTRE_MM
+    ay, az = _PATELLA_SEMI_MM
+
+    def front(r: Floats, ang: Floats) -> Floats:
+        y, z = cy + ay * r * np.cos(ang), cz + az * r * np.sin(ang)
+        dome = np.sqrt(np.clip(1.0 - r * r, 0.0, None))
+        rim = patella_back_mm(y, z) + 0.25 * _PATELLA_THICKNESS_MM
+        return rim + 0.75 * _PATELLA_THICKNESS_MM * dome ** 0.7
+
+    def back(r: Floats, ang: Floats) -> Floats:
+        y, z = cy + ay * r * np.cos(ang), cz + az * r * np.sin(ang)
+        return patella_back_mm(y, z) + 1.5 * _smoothstep((r - 0.75) / 0.25) ** 2
+
+    front_r = np.linspace(0.0, 1.0, _PATELLA_N_FRONT + 1)[1:]
+    back_r = np.linspace(0.0, 1.0, _PATELLA_N_BACK + 1)[1:]
+    # The "top" height field is the anterior face (+x): the solid lies between the two.
+    uv, h, faces = _polar_solid(front_r, back_r, _PATELLA_N_ANG, front, back)
+    vertices = np.stack([h, cy + ay * uv[:, 0], cz + az * uv[:, 1]], axis=-1)
+    return vertices, faces
+
+
+def _finish(vertices_mm: Floats, faces: np.ndarray) -> trimesh.Trimesh:
+    """Scale to metres and orient the faces outward (positive signed volume)."""
+    mesh = trimesh.Trimesh(vertices_mm * _M_PER_MM, faces, process=False, validate=False)
+    if mesh.volume < 0.0:
+        mesh = trimesh.Trimesh(mesh.vertices, faces[:, ::-1], process=False, validate=False)
+    return mesh
+
+
+def default_knee() -> dict[str, trimesh.Trimesh]:
+    """The embedded default knee: keys 'femur', 'tibia', 'patella'; metres; knee frame above.
+
+    Deterministic (no randomness): two calls return identical arrays. The femur is the
+    reference; at the identity pose the tibia sits just below it and the patella just in
+    front of its trochlear groove, each with a small gap (`NEUTRAL_GAP_MM`).
+    """
+    return {'femur': _finish(*_femur_mesh_mm()),
+            'tibia': _finish(*_tibia_mesh_mm()),
+            'patella': _finish(*_patella_mesh_mm())}
+
+
+def stl_bytes(mesh: trimesh.Trimesh) -> bytes:
+    """Binary STL of `mesh` (float32, fixed header), byte-identical for identical meshes."""
+    triangles = np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces)]
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = normals / np.where(lengths > 0.0, lengths, 1.0)
+    record = np.dtype([('normal', '<f4', (3,)), ('vertices', '<f4', (3, 3)), ('attr', '<u2')])
+    data = np.zeros(len(triangles), dtype=record)
+    data['normal'] = normals
+    data['vertices'] = triangles
+    header = b'kneeseat default knee (procedural), metres'.ljust(80, b' ')
+    return header + np.uint32(len(triangles)).astype('<u4').tobytes() + data.tobytes()
+
+
+def write_default_knee(out_dir: Path) -> dict[str, Path]:
+    """Write femur.stl, tibia.stl, patella.stl (binary STL, metres) into `out_dir`.
+
+    Each file is written atomically (temporary file in `out_dir`, then rename), so a crash
+    never leaves a half mesh; `out_dir` is created if missing. Idempotent: the same bytes
+    every time (a file that already holds them is left untouched).
+
+    Returns:
+        Body name -> path of its STL file.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    for name, mesh in default_knee().items():
+        path = out_dir / f'{name}.stl'
+        data = stl_bytes(mesh)
+        if not (path.is_file() and _same_file(path, data)):
+            fd, tmp = tempfile.mkstemp(prefix=f'.{name}.', suffix='.stl.tmp', dir=out_dir)
+            try:
+                with os.fdopen(fd, 'wb') as handle:
+                    handle.write(data)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+                os.replace(tmp, path)
+            except BaseException:
+                Path(tmp).unlink(missing_ok=True)
+                raise
+        paths[name] = path
+    return paths
+
+
+def _same_file(path: Path, data: bytes) -> bool:
+    """Whether `path` already holds exactly `data` (compared by size, then SHA-256)."""
+    if path.stat().st_size != len(data):
+        return False
+    return hashlib.sha256(path.read_bytes()).digest() == hashlib.sha256(data).digest()
