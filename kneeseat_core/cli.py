@@ -70,7 +70,8 @@ def _fix_negative_values(argv: list[str], flags: set[str]) -> list[str]:
 
 
 _VALUE_FLAGS = {'--push', '--flexion-deg', '--varus-deg', '--rotation-step',
-                '--rotation-resolution', '--step', '--resolution'}
+                '--rotation-resolution', '--step', '--resolution', '--flexion-grid',
+                '--varus-grid'}
 
 
 # ---- settle --------------------------------------------------------------------------
@@ -285,10 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _register_build_commands(sub: Any) -> None:
     """`build` and `synth` live with the knee model (kneeseat_core.build)."""
-    try:
-        from .build import register_commands
-    except ImportError:   # the knee model is optional while it is being written
-        return
+    from .build import register_commands
     register_commands(sub)
 
 

@@ -1,0 +1,263 @@
+"""Knee configuration: bodies, axes, push directions, grid and settle parameters.
+
+A config is YAML (see config/*.yaml). Mesh paths are relative to `mesh_dir`, itself
+relative to the config file unless absolute; `--mesh-dir` overrides it. Degrees appear only
+in keys ending in `_deg`. Unknown keys are errors (a typo must not be silently ignored).
+
+Attitude of a moving body at grid cell (flexion, varus):
+    A = Rot(flexion_axis, flexion_fraction * flexion) @ Rot(varus_axis, varus_fraction * varus)
+Its push direction is A @ push, and its settle starts from A applied to the mesh as
+delivered (rotation about the push is what settling finds, with the translation).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .errors import ConfigError
+from .geometry import KneeAxes, rotation_about, unit
+from .meshes import UNIT_SCALE, Units
+from .settle import SettleParams
+from .typed import Floats
+
+__all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values']
+
+
+@dataclass(frozen=True, slots=True)
+class BodySpec:
+    """One body of the knee; `push` and fractions matter for moving bodies only."""
+
+    name: str
+    frame: str
+    mesh: Path
+    display_mesh: Path | None = None
+    push: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    flexion_fraction: float = 1.0
+    varus_fraction: float = 1.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class KneeConfig:
+    """A validated knee configuration (SI units; angles in radians)."""
+
+    name: str
+    units: Units
+    reference: BodySpec
+    bodies: tuple[BodySpec, ...]
+    axes: KneeAxes
+    flexion_rad: Floats          # (F,) ascending
+    varus_rad: Floats            # (V,) ascending
+    settle: SettleParams         # push is per body; this one's push is ignored
+    source: dict[str, Any]       # the config as read (for the table's metadata)
+
+    def attitude(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
+        """(3, 3) attitude of `body` at a grid cell (module docstring)."""
+        return (rotation_about(self.axes.flexion, body.flexion_fraction * flexion_rad)
+                @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
+
+    def push(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
+        """(3,) unit push direction of `body` at a grid cell, reference frame."""
+        return self.attitude(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+
+    def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
+        """Settle parameters for `body` at a grid cell."""
+        push = self.push(body, flexion_rad, varus_rad)
+        return SettleParams(push=(float(push[0]), float(push[1]), float(push[2])),
+                            step_m=self.settle.step_m, resolution_m=self.settle.resolution_m,
+                            rotation_step_rad=self.settle.rotation_step_rad,
+                            rotation_resolution_rad=self.settle.rotation_resolution_rad,
+                            max_iterations=self.settle.max_iterations,
+                            method=self.settle.method)
+
+    def metadata(self) -> dict[str, Any]:
+        """The config as plain JSON-able data, with resolved absolute mesh paths."""
+        out = dict(self.source)
+        out['resolved'] = {
+            'reference': _spec_dict(self.reference),
+            'bodies': [_spec_dict(b) for b in self.bodies],
+            'settle': asdict(self.settle),
+            'flexion_deg': [math.degrees(v) for v in self.flexion_rad],
+            'varus_deg': [math.degrees(v) for v in self.varus_rad],
+        }
+        return out
+
+
+def _spec_dict(spec: BodySpec) -> dict[str, Any]:
+    d = asdict(spec)
+    d['mesh'] = str(spec.mesh)
+    d['display_mesh'] = None if spec.display_mesh is None else str(spec.display_mesh)
+    return d
+
+
+_TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle'}
+_BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction',
+              'varus_fraction'}
+_REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
+_GRID_KEYS = {'flexion_deg', 'varus_deg'}
+_SETTLE_KEYS = {'step_m', 'resolution_m', 'rotation_step_deg', 'rotation_resolution_deg',
+                'max_iterations', 'method'}
+
+
+def _check_keys(data: Any, allowed: set[str], where: str, required: set[str]) -> None:
+    if not isinstance(data, dict):
+        raise ConfigError(f'{where} must be a mapping of keys, got {type(data).__name__}')
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise ConfigError(f'{where}: unknown key {unknown[0]!r}; allowed: '
+                          f'{", ".join(sorted(allowed))}')
+    missing = sorted(required - set(data))
+    if missing:
+        raise ConfigError(f'{where}: missing key {missing[0]!r}')
+
+
+def grid_values(spec: Any, where: str) -> Floats:
+    """[start, stop, step] in degrees -> ascending radians (stop included)."""
+    if (not isinstance(spec, (list, tuple)) or len(spec) != 3
+            or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in spec)):
+        raise ConfigError(f'{where} must be [start, stop, step] in degrees, got {spec!r}')
+    start, stop, step = (float(v) for v in spec)
+    if start == stop:
+        return np.array([math.radians(start)])
+    if step == 0:
+        raise ConfigError(f'{where}: step must not be zero')
+    count = abs(stop - start) / abs(step)
+    if abs(count - round(count)) > 1e-6:
+        raise ConfigError(f'{where}: step {abs(step):g} does not divide {start:g}..{stop:g}; '
+                          'choose a step that lands on stop')
+    if round(count) + 1 > 100_000:
+        raise ConfigError(f'{where}: {round(count) + 1} grid values is too many')
+    values = np.linspace(start, stop, int(round(count)) + 1)
+    return np.radians(np.sort(values))
+
+
+def _vector(value: Any, where: str) -> tuple[float, float, float]:
+    try:
+        vec = unit(np.asarray(value, dtype=float), where)
+    except (TypeError, ValueError):
+        raise ConfigError(f'{where} must be three numbers like [0, 1, 0], got {value!r}') \
+            from None
+    return float(vec[0]), float(vec[1]), float(vec[2])
+
+
+def _fraction(value: Any, where: str) -> float:
+    if not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f'{where} must be a number, got {value!r}')
+    return float(value)
+
+
+def _mesh_path(mesh_dir: Path, value: Any, where: str) -> Path:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f'{where} must be a file name, got {value!r}')
+    path = Path(value) if Path(value).is_absolute() else mesh_dir / value
+    if not path.is_file():
+        raise ConfigError(f'{where}: mesh file {path} not found; fix the path or pass '
+                          '--mesh-dir DIR')
+    return path
+
+
+def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
+    _check_keys(data, _BODY_KEYS if moving else _REF_KEYS, where, {'name', 'mesh'})
+    name = data['name']
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ConfigError(f'{where}.name must be a simple identifier (letters, digits, _), '
+                          f'got {name!r}')
+    display = data.get('display_mesh')
+    spec = BodySpec(name=name, frame=str(data.get('frame', name)),
+                    mesh=_mesh_path(mesh_dir, data['mesh'], f'{where}.mesh'),
+                    display_mesh=None if display is None else
+                    _mesh_path(mesh_dir, display, f'{where}.display_mesh'))
+    if not moving:
+        return spec
+    return BodySpec(spec.name, spec.frame, spec.mesh, spec.display_mesh,
+                    push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
+                    flexion_fraction=_fraction(data.get('flexion_fraction', 1.0),
+                                               f'{where}.flexion_fraction'),
+                    varus_fraction=_fraction(data.get('varus_fraction', 1.0),
+                                             f'{where}.varus_fraction'))
+
+
+def _settle_params(data: Any) -> SettleParams:
+    _check_keys(data, _SETTLE_KEYS, 'settle', set())
+    try:
+        params = SettleParams(
+            step_m=float(data.get('step_m', 1e-3)),
+            resolution_m=float(data.get('resolution_m', 1e-4)),
+            rotation_step_rad=(None if data.get('rotation_step_deg') is None
+                               else math.radians(float(data['rotation_step_deg']))),
+            rotation_resolution_rad=(None if data.get('rotation_resolution_deg') is None
+                                     else math.radians(float(data['rotation_resolution_deg']))),
+            max_iterations=int(data.get('max_iterations', 500)),
+            method=data.get('method', 'default'))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f'settle: {err}') from None
+    try:
+        params.check()
+    except Exception as err:  # SettleError: re-label as a config problem
+        raise ConfigError(f'settle: {err}') from None
+    return params
+
+
+def load_config(path: Path, mesh_dir: Path | None = None,
+                overrides: dict[str, Any] | None = None) -> KneeConfig:
+    """Read and validate a knee config.
+
+    Args:
+        path: YAML file.
+        mesh_dir: overrides the config's `mesh_dir`.
+        overrides: top-level sections replaced before validation (e.g. {'grid': {...}}).
+    Raises:
+        ConfigError: unreadable YAML, unknown or missing keys, missing meshes, zero-length
+            or non-orthogonal axes, bad grid or settle values; the message names the key.
+    """
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f'{path}: no such config file') from None
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f'{path}: not readable YAML ({str(err).splitlines()[0]})') from None
+    if overrides:
+        data = {**(data or {}), **overrides}
+    try:
+        return _parse(data, path, mesh_dir)
+    except ConfigError as err:
+        raise ConfigError(f'{path}: {err}') from None
+
+
+def _parse(data: Any, path: Path, mesh_dir: Path | None) -> KneeConfig:
+    _check_keys(data, _TOP_KEYS, 'config', {'reference', 'axes', 'bodies', 'grid'})
+    units = data.get('units', 'm')
+    if units not in UNIT_SCALE:
+        raise ConfigError(f"units must be 'm' or 'mm', got {units!r}")
+    if mesh_dir is None:
+        mesh_dir = Path(data.get('mesh_dir', '.'))
+        if not mesh_dir.is_absolute():
+            mesh_dir = path.parent / mesh_dir
+    mesh_dir = mesh_dir.resolve()
+    if not mesh_dir.is_dir():
+        raise ConfigError(f'mesh_dir {mesh_dir} is not a directory; pass --mesh-dir DIR')
+    axes_data = data['axes']
+    _check_keys(axes_data, {'flexion', 'varus', 'long'}, 'axes', {'flexion', 'varus', 'long'})
+    axes = KneeAxes.from_vectors(*(np.asarray(_vector(axes_data[k], f'axes.{k}'))
+                                   for k in ('flexion', 'varus', 'long')))
+    reference = _body(data['reference'], mesh_dir, 'reference', moving=False)
+    bodies_data = data['bodies']
+    if not isinstance(bodies_data, list) or not bodies_data:
+        raise ConfigError('bodies must be a non-empty list of moving bodies')
+    bodies = tuple(_body(b, mesh_dir, f'bodies[{i}]', moving=True)
+                   for i, b in enumerate(bodies_data))
+    names = [reference.name] + [b.name for b in bodies]
+    if len(set(names)) != len(names):
+        raise ConfigError(f'body names must be unique, got {names}')
+    grid = data['grid']
+    _check_keys(grid, _GRID_KEYS, 'grid', _GRID_KEYS)
+    settle = _settle_params(data.get('settle') or {})
+    name = str(data.get('name', path.stem))
+    return KneeConfig(name, units, reference, bodies, axes,
+                      grid_values(grid['flexion_deg'], 'grid.flexion_deg'),
+                      grid_values(grid['varus_deg'], 'grid.varus_deg'), settle, data)

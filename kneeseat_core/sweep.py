@@ -1,0 +1,273 @@
+"""The range-of-motion sweep: settle every grid attitude, warm-started, in parallel chains.
+
+Order (the patent's warm start, made parallel):
+1. a *spine* per moving body: the varus values at the flexion nearest 0, settled outward
+   from the varus nearest 0 (each cell starts from its neighbour's equilibrium);
+2. a *column* per (body, varus value): the flexion values settled outward from the spine
+   cell, each from its neighbour's equilibrium.
+Spines run in parallel across bodies, then columns in parallel across bodies and varus
+values, on any `concurrent.futures.Executor` (a process pool by default; Dask's executor
+plugs in the same way). A body whose attitude ignores varus (`varus_fraction: 0`, e.g. a
+patella) is settled on one column and copied across varus.
+
+A warm start keeps the neighbour's spin about the push and its position relative to the
+joint (both turned by the change of attitude), backed off one step along the push.
+Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Sequence
+
+import multiprocessing
+import numpy as np
+
+from .collision import RigidBody
+from .errors import NoContactError, SettleError
+from .geometry import pose_from, quat_from_matrix
+from .knee import KneeConfig
+from .meshes import load_mesh
+from .settle import SettleParams, settle
+from .typed import Floats, Pose
+
+__all__ = ['SceneSpec', 'ChainJob', 'ChainResult', 'SweepResult', 'InlineExecutor',
+           'run_chain', 'sweep', 'default_workers', 'process_executor']
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class SceneSpec:
+    """What a worker needs to rebuild the rigid bodies (small, picklable, hashable)."""
+
+    reference_mesh: str
+    body_meshes: tuple[str, ...]
+    units: str
+
+
+_SCENES: dict[SceneSpec, tuple[RigidBody, tuple[RigidBody, ...]]] = {}
+
+
+def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
+    """The rigid bodies of `spec`, built once per process and cached."""
+    if spec not in _SCENES:
+        fixed = RigidBody.from_mesh(load_mesh(spec.reference_mesh, spec.units))  # type: ignore
+        moving = tuple(RigidBody.from_mesh(load_mesh(m, spec.units))  # type: ignore[arg-type]
+                       for m in spec.body_meshes)
+        _SCENES.clear()          # one scene per worker at a time keeps memory flat
+        _SCENES[spec] = (fixed, moving)
+    return _SCENES[spec]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ChainJob:
+    """A chain of cells of one body, settled in order, each warm-started from the last."""
+
+    scene: SceneSpec
+    body: int
+    cells: tuple[tuple[int, int], ...]      # (flexion index, varus index) in order
+    attitudes: Floats                       # (n, 3, 3) attitude A of each cell
+    params: tuple[SettleParams, ...]        # per cell (push differs)
+    start: Pose                             # (4, 4) pose the first cell starts from
+    start_attitude: Floats                  # (3, 3) attitude `start` was settled at
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ChainResult:
+    """Settled poses of a chain, in the job's cell order."""
+
+    body: int
+    cells: tuple[tuple[int, int], ...]
+    poses: Floats             # (n, 4, 4)
+    converged: Floats         # (n,) bool
+    iterations: Floats        # (n,) int
+    collision_checks: int
+    reasons: tuple[str, ...]
+    elapsed_s: float
+
+
+def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
+               push: Floats, back_off_m: float) -> Pose:
+    """Start pose at a new attitude from a neighbour's equilibrium (module docstring)."""
+    turn = attitude @ previous_attitude.T
+    return pose_from(turn @ previous[:3, :3], turn @ previous[:3, 3] - back_off_m * push)
+
+
+def run_chain(job: ChainJob) -> ChainResult:
+    """Settle the cells of `job` in order (runs in a worker process)."""
+    started = time.perf_counter()
+    fixed, bodies = scene_bodies(job.scene)
+    moving = bodies[job.body]
+    n = len(job.cells)
+    poses = np.empty((n, 4, 4))
+    converged = np.zeros(n, dtype=bool)
+    iterations = np.zeros(n, dtype=np.int64)
+    reasons: list[str] = []
+    checks = 0
+    previous, previous_attitude = job.start, job.start_attitude
+    for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
+        start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
+                           params.step_m)
+        try:
+            result = settle(fixed, moving, start, params)
+        except (NoContactError, SettleError) as err:
+            poses[i], reasons = start, reasons + [f'failed: {err}']
+            checks += 0
+            previous, previous_attitude = start, attitude
+            continue
+        poses[i] = result.pose
+        converged[i] = result.converged
+        iterations[i] = result.iterations
+        checks += result.collision_checks
+        reasons.append(result.reason)
+        previous, previous_attitude = result.pose, attitude
+    return ChainResult(job.body, job.cells, poses, converged, iterations, checks,
+                       tuple(reasons), time.perf_counter() - started)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SweepResult:
+    """Every cell of every body, in table layout."""
+
+    position_m: Floats          # (B, F, V, 3)
+    orientation_xyzw: Floats    # (B, F, V, 4)
+    converged: Floats           # (B, F, V) bool
+    iterations: Floats          # (B, F, V) int
+    collision_checks: int
+    wall_s: float
+    failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
+
+    @property
+    def cells(self) -> int:
+        """Number of (body, flexion, varus) cells."""
+        return int(self.converged.size)
+
+
+class InlineExecutor(Executor):
+    """A `concurrent.futures.Executor` that runs each task at submit time, in-process."""
+
+    def submit(self, fn: Callable, /, *args, **kwargs) -> Future:  # type: ignore[override]
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as err:  # noqa: B902 - handed to the caller via the future
+            if isinstance(err, KeyboardInterrupt):
+                raise
+            future.set_exception(err)
+        return future
+
+
+def default_workers() -> int:
+    """All cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def process_executor(workers: int) -> Executor:
+    """The default executor: in-process for one worker, else a process pool (spawn)."""
+    if workers <= 1:
+        return InlineExecutor()
+    return ProcessPoolExecutor(max_workers=workers,
+                               mp_context=multiprocessing.get_context('spawn'))
+
+
+def _outward(n: int, centre: int) -> tuple[list[int], list[int]]:
+    """Indices from `centre` going up and going down (centre excluded)."""
+    return list(range(centre + 1, n)), list(range(centre - 1, -1, -1))
+
+
+def sweep(config: KneeConfig, executor: Executor,
+          progress: Callable[[int], None] | None = None) -> SweepResult:
+    """Settle every (body, flexion, varus) cell of `config` on `executor`.
+
+    Args:
+        progress: called with the number of cells just finished.
+    Returns:
+        All poses in table layout; non-converged cells are flagged, never hidden.
+    """
+    started = time.perf_counter()
+    flex, var = config.flexion_rad, config.varus_rad
+    nb, nf, nv = len(config.bodies), len(flex), len(var)
+    scene = SceneSpec(str(config.reference.mesh), tuple(str(b.mesh) for b in config.bodies),
+                      config.units)
+    f0 = int(np.argmin(np.abs(flex)))
+    v0 = int(np.argmin(np.abs(var)))
+    poses = np.zeros((nb, nf, nv, 4, 4))
+    converged = np.zeros((nb, nf, nv), dtype=bool)
+    iterations = np.zeros((nb, nf, nv), dtype=np.int64)
+    failures: list[str] = []
+    checks = 0
+
+    def job(body: int, cells: Sequence[tuple[int, int]], start: Pose,
+            start_attitude: Floats) -> ChainJob:
+        spec = config.bodies[body]
+        return ChainJob(scene, body, tuple(cells),
+                        np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
+                        tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
+                        start, start_attitude)
+
+    def collect(futures: Iterable[Future]) -> list[ChainResult]:
+        nonlocal checks
+        done = []
+        for fut in as_completed(list(futures)):
+            res: ChainResult = fut.result()
+            for k, (f, v) in enumerate(res.cells):
+                poses[res.body, f, v] = res.poses[k]
+                converged[res.body, f, v] = res.converged[k]
+                iterations[res.body, f, v] = res.iterations[k]
+                if not res.converged[k] and len(failures) < 5:
+                    failures.append(f'{config.bodies[res.body].name} flexion '
+                                    f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}:'
+                                    f' {res.reasons[k]}')
+            checks += res.collision_checks
+            if progress:
+                progress(len(res.cells))
+            done.append(res)
+        return done
+
+    varus_free = [abs(b.varus_fraction) < 1e-12 for b in config.bodies]
+    # 1. spines: flexion f0; varus outward from v0 (the centre cell starts cold)
+    spine_jobs = []
+    for b, spec in enumerate(config.bodies):
+        a0 = config.attitude(spec, flex[f0], var[v0])
+        cold = pose_from(a0, -spec_push(config, b, f0, v0) * config.settle.step_m)
+        spine_jobs.append(job(b, [(f0, v0)], cold, a0))
+    collect([executor.submit(run_chain, j) for j in spine_jobs])
+    side_jobs = []
+    for b, spec in enumerate(config.bodies):
+        if varus_free[b]:
+            continue
+        for side in _outward(nv, v0):
+            if side:
+                side_jobs.append(job(b, [(f0, v) for v in side], poses[b, f0, v0],
+                                     config.attitude(spec, flex[f0], var[v0])))
+    collect([executor.submit(run_chain, j) for j in side_jobs])
+    # 2. columns: every varus value (or only v0 for a varus-free body), flexion outward
+    column_jobs = []
+    for b, spec in enumerate(config.bodies):
+        for v in ([v0] if varus_free[b] else range(nv)):
+            for side in _outward(nf, f0):
+                if side:
+                    column_jobs.append(job(b, [(f, v) for f in side], poses[b, f0, v],
+                                           config.attitude(spec, flex[f0], var[v])))
+    collect([executor.submit(run_chain, j) for j in column_jobs])
+    for b in range(nb):
+        if varus_free[b]:
+            poses[b] = poses[b, :, v0:v0 + 1]
+            converged[b] = converged[b, :, v0:v0 + 1]
+            iterations[b] = iterations[b, :, v0:v0 + 1]
+    return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
+                       converged, iterations, checks, time.perf_counter() - started,
+                       tuple(failures))
+
+
+def spec_push(config: KneeConfig, body: int, f: int, v: int) -> Floats:
+    """Push direction of body `body` at grid cell (f, v)."""
+    return config.push(config.bodies[body], config.flexion_rad[f], config.varus_rad[v])
