@@ -1,0 +1,208 @@
+"""The settle engine against analytic rest poses (issue 2, "Show" list for settling).
+
+Scenes (test/settle_cases.py): a sphere in a spherical bowl, a sphere in a cone, a cylinder
+in a V groove (FIG. 13: across the groove determined, along it free), an elongated key
+started 20 degrees off about the push that must turn into its pocket, and two rigidly
+joined spheres over two bowls of different depth. Each plain, with a tilted push and with
+the whole scene rotated; each plain scene once more at millimetre scale through the CLI.
+
+Thresholds are the issue's, never loosened: with the default method the position error
+in the determined directions is within 2 x resolution + 0.05 mm, and the rotation about
+the push (where determined) within 1.5 x the rotation resolution, that is
+resolution / (farthest-vertex radius about the push axis) unless a test sets
+`rotation_resolution_rad` (the 0.1 degree runs).
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kneeseat_core.cli import main
+from kneeseat_core.collision import CollisionPair
+from kneeseat_core.geometry import pose_from, quat_from_matrix, rotation_about
+from kneeseat_core.settle import settle, SettleParams, SettleResult
+import settle_cases as sc
+
+RESOLUTION_M = 1e-4                          # the default SettleParams().resolution_m
+POSITION_TOL_M = 2.0 * RESOLUTION_M + 0.05e-3
+CASES = list(itertools.product(sc.SCENES, sc.VARIANTS))
+JSON_KEYS = {'converged', 'reason', 'pose', 'iterations', 'collision_checks', 'contacts',
+             'elapsed_s'}
+
+
+def farthest_radius(var: sc.Variant, pose: np.ndarray) -> float:
+    """Distance (m) of the moving body's farthest vertex from the axis through its
+    centroid parallel to the push, with the body at `pose` (our own computation)."""
+    push = var.push / np.linalg.norm(var.push)
+    world = var.moving_mesh.vertices @ pose[:3, :3].T + pose[:3, 3]
+    centre = pose[:3, :3] @ var.moving_mesh.centroid + pose[:3, 3]
+    rel = world - centre
+    rel -= np.outer(rel @ push, push)
+    return float(np.max(np.linalg.norm(rel, axis=1)))
+
+
+def default_rotation_tol(var: sc.Variant) -> float:
+    """1.5 x the default rotation resolution (rad): resolution / farthest-vertex radius."""
+    return 1.5 * RESOLUTION_M / farthest_radius(var, var.start)
+
+
+def run(name: str, kind: str, **kwargs: object) -> SettleResult:
+    var = sc.variant(name, kind)
+    return settle(var.fixed, var.moving, var.start,
+                  SettleParams(push=tuple(float(v) for v in var.push), **kwargs))
+
+
+def assert_at_contact(var: sc.Variant, pose: np.ndarray) -> None:
+    """Not in collision, and in collision once pushed one resolution further."""
+    pair = CollisionPair(var.fixed, var.moving)
+    push = var.push / np.linalg.norm(var.push)
+    assert not pair.collides(pose), 'the end pose penetrates the fixed body'
+    pushed = pose.copy()
+    pushed[:3, 3] += RESOLUTION_M * push
+    assert pair.collides(pushed), 'the end pose is more than one resolution from contact'
+
+
+def test_farthest_radius_of_the_key_matches_the_issue() -> None:
+    # the issue quotes "about 0.28 deg for the 40 mm key"
+    var = sc.variant('key_pocket', 'plain')
+    assert math.degrees(RESOLUTION_M / farthest_radius(var, var.start)) == \
+        pytest.approx(0.28, abs=0.01)
+
+
+@pytest.mark.parametrize('name,kind', CASES)
+def test_default_settle_meets_analytic_rest(name: str, kind: str) -> None:
+    result = run(name, kind)
+    assert result.converged, result.reason
+    position_err, rotation_err = sc.errors(name, kind, result.pose)
+    assert position_err <= POSITION_TOL_M, \
+        f'position error {position_err * 1e3:.4f} mm > {POSITION_TOL_M * 1e3:.3f} mm'
+    if rotation_err is not None:
+        tol = default_rotation_tol(sc.variant(name, kind))
+        assert rotation_err <= tol, \
+            f'rotation error {math.degrees(rotation_err):.4f} deg > {math.degrees(tol):.4f} deg'
+    assert_at_contact(sc.variant(name, kind), result.pose)
+    assert result.collision_checks > 0 and result.iterations > 0
+    assert 0.0 < result.fcl_s <= result.elapsed_s
+
+
+@pytest.mark.parametrize('name,kind', list(itertools.product(
+    ('key_pocket', 'cylinder_groove'), sc.VARIANTS)))
+def test_default_settle_at_a_tenth_of_a_degree(name: str, kind: str) -> None:
+    rotation_res = math.radians(0.1)
+    result = run(name, kind, rotation_resolution_rad=rotation_res)
+    assert result.converged, result.reason
+    position_err, rotation_err = sc.errors(name, kind, result.pose)
+    assert position_err <= POSITION_TOL_M
+    assert rotation_err is not None
+    assert rotation_err <= 1.5 * rotation_res, \
+        f'rotation error {math.degrees(rotation_err):.4f} deg > 0.15 deg'
+
+
+def test_key_really_turns_into_its_pocket() -> None:
+    """The key starts 20 degrees off; the rest is reachable only by turning about the push."""
+    var = sc.variant('key_pocket', 'plain')
+    _, start_err = sc.errors('key_pocket', 'plain', var.start)
+    assert start_err == pytest.approx(math.radians(20.0), abs=1e-9)
+    _, end_err = sc.errors('key_pocket', 'plain', run('key_pocket', 'plain').pose)
+    assert end_err is not None and end_err < math.radians(0.5)
+
+
+def test_cylinder_is_free_along_the_groove() -> None:
+    """Across the groove the rest is determined; along it (Z) the cylinder does not move
+    further than the step: nothing pushes it that way."""
+    var = sc.variant('cylinder_groove', 'plain')
+    result = run('cylinder_groove', 'plain')
+    along = result.pose[2, 3] - var.start[2, 3]
+    assert abs(along) <= 1e-3, f'moved {along * 1e3:.3f} mm along the free direction'
+
+
+@pytest.mark.parametrize('name,kind', CASES)
+def test_patent_method_ends_honestly(name: str, kind: str) -> None:
+    """The literal method may stop short (recorded in docs/settle_cases.md), but its end
+    pose is never in collision and a stop is always explained."""
+    result = run(name, kind, method='patent')
+    var = sc.variant(name, kind)
+    assert not CollisionPair(var.fixed, var.moving).collides(result.pose)
+    if result.converged:
+        assert result.reason.startswith('stable')
+    else:
+        assert result.reason.startswith(('wedged', 'iteration cap', 'no usable contact'))
+    assert 1 <= result.iterations <= 500
+
+
+def test_settling_again_does_not_move() -> None:
+    var = sc.variant('key_pocket', 'rotated')
+    first = run('key_pocket', 'rotated')
+    again = settle(var.fixed, var.moving, first.pose,
+                   SettleParams(push=tuple(float(v) for v in var.push)))
+    assert again.converged
+    assert np.linalg.norm(again.pose[:3, 3] - first.pose[:3, 3]) <= 2.0 * RESOLUTION_M
+    cos = (np.trace(first.pose[:3, :3].T @ again.pose[:3, :3]) - 1.0) / 2.0
+    arc = math.acos(min(1.0, cos)) * farthest_radius(var, first.pose)
+    assert arc <= 2.0 * RESOLUTION_M
+
+
+@pytest.mark.parametrize('name', ['sphere_cone', 'key_pocket'])
+def test_end_pose_independent_of_start(name: str) -> None:
+    """The patent's claim: 10 seeded random starts in one basin end within 2 x resolution
+    of each other (positions; orientations as an arc at the farthest vertex)."""
+    var = sc.variant(name, 'plain')
+    rng = np.random.default_rng(7)
+    up = np.array([0.0, 1.0, 0.0])
+    poses = []
+    for _ in range(10):
+        dx, dz = rng.uniform(-3e-3, 3e-3, 2)
+        turn = rotation_about(up, math.radians(rng.uniform(-10.0, 10.0)))
+        start = pose_from(turn @ var.start[:3, :3], var.start[:3, 3] + [dx, 0.0, dz])
+        result = settle(var.fixed, var.moving, start, SettleParams(push=tuple(var.push)))
+        assert result.converged, result.reason
+        poses.append(result.pose)
+    radius = farthest_radius(var, poses[0])
+    worst_position = worst_arc = 0.0
+    for a, b in itertools.combinations(poses, 2):
+        worst_position = max(worst_position, float(np.linalg.norm(a[:3, 3] - b[:3, 3])))
+        cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+        worst_arc = max(worst_arc, math.acos(min(1.0, cos)) * radius)
+    assert worst_position <= 2.0 * RESOLUTION_M, f'{worst_position * 1e3:.4f} mm apart'
+    if name == 'key_pocket':    # a sphere's spin about its centre is not determined
+        assert worst_arc <= 2.0 * RESOLUTION_M, f'arc {worst_arc * 1e3:.4f} mm apart'
+
+
+def write_mm_scene(var: sc.Variant, folder: Path) -> tuple[Path, Path, Path]:
+    """Both meshes scaled x1000 to STL, and the start as START.json (metres)."""
+    paths = folder / 'fixed.stl', folder / 'moving.stl', folder / 'start.json'
+    for mesh, path in zip((var.fixed_mesh, var.moving_mesh), paths):
+        scaled = mesh.copy()
+        scaled.apply_scale(1000.0)
+        scaled.export(path)
+    paths[2].write_text(json.dumps({
+        'position': [float(v) for v in var.start[:3, 3]],
+        'orientation': [float(v) for v in quat_from_matrix(var.start[:3, :3])]}))
+    return paths
+
+
+@pytest.mark.parametrize('name', sc.SCENES)
+def test_cli_settles_millimetre_meshes(name: str, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    from kneeseat_core.geometry import matrix_from_quat
+    var = sc.variant(name, 'plain')
+    fixed, moving, start = write_mm_scene(var, tmp_path)
+    push = ','.join(repr(float(v)) for v in var.push)
+    code = main(['settle', '--fixed', str(fixed), '--moving', str(moving), '--units', 'mm',
+                 '--start', str(start), f'--push={push}', '--json'])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    data = json.loads(out)
+    assert set(data) == JSON_KEYS and data['converged'] is True
+    pose = pose_from(matrix_from_quat(np.array(data['pose']['orientation'])),
+                     np.array(data['pose']['position']))
+    position_err, rotation_err = sc.errors(name, 'plain', pose)
+    assert position_err <= POSITION_TOL_M, f'{position_err * 1e3:.4f} mm'
+    if rotation_err is not None:
+        assert rotation_err <= default_rotation_tol(var), \
+            f'{math.degrees(rotation_err):.4f} deg'
