@@ -39,7 +39,7 @@ from kneeseat_ros.table_server import main, STATUS_NAME, TableServer
 pytestmark = pytest.mark.ros
 
 TABLE_SERVER = Path(sys.prefix) / 'bin' / 'table_server'
-RELIABLE = QoSProfile(depth=10, reliability=QoSReliabilityPolicy.RELIABLE)
+RELIABLE = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
 BODIES = ('tibia', 'patella')
 
 
@@ -204,8 +204,24 @@ def test_answers_equal_core_interpolation_and_markers(tmp_path: Path, domain_id:
             assert_answer(table, msg, probe.ask(msg))
             jmsg = joint_state(flexion, varus, probe.next_stamp())
             assert_answer(table, jmsg, probe.ask(jmsg))
+        # a burst (no waiting in between) is answered completely and in order
+        arrived: list[int] = []
+        probe.node.create_subscription(PoseStamped, '/knee/tibia/pose',
+                                       lambda m: arrived.append(stamp_ns(m.header.stamp)),
+                                       RELIABLE)
+        burst = [pose_stamped_for_attitude(table.axes, -0.01 * k, 0.0, probe.next_stamp(),
+                                           'femur') for k in range(30)]
+        for msg in burst:
+            probe.pose_pub.publish(msg)
+        keys = [stamp_ns(m.header.stamp) for m in burst]
+        spin_until(probe.executor, lambda: all(('patella', k) in probe.answers for k in keys)
+                   and set(keys) <= set(arrived), what='answers to a burst of 30')
+        assert [k for k in arrived if k in set(keys)] == keys
+        for msg in burst[::7]:
+            assert_answer(table, msg, {b: probe.answers[(b, stamp_ns(msg.header.stamp))]
+                                       for b in BODIES})
         # markers carry the last answer: reference (id 0) plus one mesh per moving body
-        last_stamp = stamp_ns(jmsg.header.stamp)
+        last_stamp = stamp_ns(burst[-1].header.stamp)
         spin_until(probe.executor, lambda: any(
             len(m.markers) == 3 and stamp_ns(m.markers[1].header.stamp) == last_stamp
             for m in probe.markers), what='markers of the last answer')
@@ -216,7 +232,7 @@ def test_answers_equal_core_interpolation_and_markers(tmp_path: Path, domain_id:
                    for m in markers)
         assert [m.mesh_resource for m in markers] == [
             f'file://{mesh_dir / n}.stl' for n in ('femur', *BODIES)]
-        want = expected(table, jmsg)
+        want = expected(table, burst[-1])
         assert markers[1].pose.position.x == pytest.approx(want.position_m[0, 0], abs=1e-12)
     finally:
         probe.destroy()
