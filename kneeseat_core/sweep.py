@@ -12,7 +12,10 @@ patella) is settled on one column and copied across varus.
 
 A warm start keeps the neighbour's spin about the push and its position relative to the
 joint (both turned by the change of attitude), backed off one step along the push.
-Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`.
+Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`. The
+spec carries each mesh's SHA-256, so a worker that cannot read the paths (a remote Dask
+worker) finds the bytes shipped to it by content (`register_mesh_copy`, kneeseat_core/cluster.py),
+and a long-lived worker never reuses bodies of a mesh file that has since changed.
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Iterable, Sequence
 
 import multiprocessing
+import threading
+
 import numpy as np
 
 from .collision import RigidBody
@@ -33,10 +38,12 @@ from .geometry import pose_from, quat_from_matrix
 from .knee import KneeConfig
 from .meshes import load_mesh
 from .settle import SettleParams, settle
+from .table import file_sha256
 from .typed import Floats, Pose
 
 __all__ = ['SceneSpec', 'ChainJob', 'ChainResult', 'SweepResult', 'InlineExecutor',
-           'run_chain', 'sweep', 'default_workers', 'process_executor']
+           'run_chain', 'sweep', 'default_workers', 'process_executor', 'scene_bodies',
+           'register_mesh_copy', 'scene_builds']
 
 log = logging.getLogger(__name__)
 
@@ -48,20 +55,48 @@ class SceneSpec:
     reference_mesh: str
     body_meshes: tuple[str, ...]
     units: str
+    mesh_sha256: tuple[str, ...] = ()   # hex, reference then bodies; () = paths only
 
 
 _SCENES: dict[SceneSpec, tuple[RigidBody, tuple[RigidBody, ...]]] = {}
+_SCENES_LOCK = threading.Lock()     # Dask workers may run several chains in threads
+_MESH_COPIES: dict[str, str] = {}   # SHA-256 -> local file with those bytes
+_SCENE_BUILDS = 0
+
+
+def register_mesh_copy(sha256: str, path: str) -> None:
+    """Let `scene_bodies` load the mesh with content `sha256` from local file `path`.
+
+    Used on Dask workers, where the SceneSpec's paths may not exist (kneeseat_core/cluster.py).
+    A registered copy is preferred to the spec's path: it is the content the client hashed.
+    """
+    _MESH_COPIES[sha256] = path
+
+
+def scene_builds() -> int:
+    """How many scenes this process has built (meshes loaded, BVHs made) so far."""
+    return _SCENE_BUILDS
+
+
+def _mesh_source(spec: SceneSpec, index: int, path: str) -> str:
+    if index < len(spec.mesh_sha256):
+        return _MESH_COPIES.get(spec.mesh_sha256[index], path)
+    return path
 
 
 def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
     """The rigid bodies of `spec`, built once per process and cached."""
-    if spec not in _SCENES:
-        fixed = RigidBody.from_mesh(load_mesh(spec.reference_mesh, spec.units))  # type: ignore
-        moving = tuple(RigidBody.from_mesh(load_mesh(m, spec.units))  # type: ignore[arg-type]
-                       for m in spec.body_meshes)
-        _SCENES.clear()          # one scene per worker at a time keeps memory flat
-        _SCENES[spec] = (fixed, moving)
-    return _SCENES[spec]
+    global _SCENE_BUILDS
+    with _SCENES_LOCK:
+        if spec not in _SCENES:
+            paths = (spec.reference_mesh,) + spec.body_meshes
+            bodies = tuple(RigidBody.from_mesh(load_mesh(_mesh_source(spec, i, p),
+                                                         spec.units))  # type: ignore[arg-type]
+                           for i, p in enumerate(paths))
+            _SCENES.clear()          # one scene per worker at a time keeps memory flat
+            _SCENES[spec] = (bodies[0], bodies[1:])
+            _SCENE_BUILDS += 1
+        return _SCENES[spec]
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -116,16 +151,16 @@ def run_chain(job: ChainJob) -> ChainResult:
         try:
             result = settle(fixed, moving, start, params)
         except (NoContactError, SettleError) as err:
-            poses[i], reasons = start, reasons + [f'failed: {err}']
-            checks += 0
-            previous, previous_attitude = start, attitude
+            poses[i] = start
+            reasons.append(f'failed: {err}')
             continue
         poses[i] = result.pose
         converged[i] = result.converged
         iterations[i] = result.iterations
         checks += result.collision_checks
         reasons.append(result.reason)
-        previous, previous_attitude = result.pose, attitude
+        if result.converged:   # a failed cell never seeds its neighbours
+            previous, previous_attitude = result.pose, attitude
     return ChainResult(job.body, job.cells, poses, converged, iterations, checks,
                        tuple(reasons), time.perf_counter() - started)
 
@@ -195,8 +230,9 @@ def sweep(config: KneeConfig, executor: Executor,
     started = time.perf_counter()
     flex, var = config.flexion_rad, config.varus_rad
     nb, nf, nv = len(config.bodies), len(flex), len(var)
+    meshes = (config.reference.mesh,) + tuple(b.mesh for b in config.bodies)
     scene = SceneSpec(str(config.reference.mesh), tuple(str(b.mesh) for b in config.bodies),
-                      config.units)
+                      config.units, tuple(file_sha256(m) for m in meshes))
     f0 = int(np.argmin(np.abs(flex)))
     v0 = int(np.argmin(np.abs(var)))
     poses = np.zeros((nb, nf, nv, 4, 4))
