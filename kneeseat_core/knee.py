@@ -7,7 +7,11 @@ in keys ending in `_deg`. Unknown keys are errors (a typo must not be silently i
 Attitude of a moving body at grid cell (flexion, varus):
     A = Rot(flexion_axis, flexion_fraction * flexion) @ Rot(varus_axis, varus_fraction * varus)
 Its push direction is A @ push, and its settle starts from A applied to the mesh as
-delivered (rotation about the push is what settling finds, with the translation).
+delivered (rotation about the push is what settling finds, with the translation). An
+optional `locked_slide` (a direction at neutral, turned by A) is a slide the body may not
+make: a patella's height along the groove is held by its tendon, not by the push - pushed
+onto the sagittally convex trochlea it would otherwise slide off the flange (tried on the
+total knee: with any fixed push it leaves the component within 10 degrees of flexion).
 """
 from __future__ import annotations
 
@@ -39,6 +43,7 @@ class BodySpec:
     push: tuple[float, float, float] = (0.0, 1.0, 0.0)
     flexion_fraction: float = 1.0
     varus_fraction: float = 1.0
+    locked_slide: tuple[float, float, float] | None = None   # neutral frame, turns with A
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -67,7 +72,12 @@ class KneeConfig:
     def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
         """Settle parameters for `body` at a grid cell."""
         push = self.push(body, flexion_rad, varus_rad)
+        lock = None
+        if body.locked_slide is not None:
+            turned = self.attitude(body, flexion_rad, varus_rad) @ np.asarray(body.locked_slide)
+            lock = (float(turned[0]), float(turned[1]), float(turned[2]))
         return SettleParams(push=(float(push[0]), float(push[1]), float(push[2])),
+                            locked_slide=lock,
                             step_m=self.settle.step_m, resolution_m=self.settle.resolution_m,
                             rotation_step_rad=self.settle.rotation_step_rad,
                             rotation_resolution_rad=self.settle.rotation_resolution_rad,
@@ -96,7 +106,7 @@ def _spec_dict(spec: BodySpec) -> dict[str, Any]:
 
 _TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle'}
 _BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction',
-              'varus_fraction'}
+              'varus_fraction', 'locked_slide'}
 _REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
 _GRID_KEYS = {'flexion_deg', 'varus_deg'}
 _SETTLE_KEYS = {'step_m', 'resolution_m', 'rotation_step_deg', 'rotation_resolution_deg',
@@ -178,7 +188,9 @@ def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
                     flexion_fraction=_fraction(data.get('flexion_fraction', 1.0),
                                                f'{where}.flexion_fraction'),
                     varus_fraction=_fraction(data.get('varus_fraction', 1.0),
-                                             f'{where}.varus_fraction'))
+                                             f'{where}.varus_fraction'),
+                    locked_slide=(None if data.get('locked_slide') is None else
+                                  _vector(data['locked_slide'], f'{where}.locked_slide')))
 
 
 def _settle_params(data: Any) -> SettleParams:

@@ -73,6 +73,9 @@ class SettleParams:
     rotation_resolution_rad: float | None = None  # None: method's own rule (see module)
     max_iterations: int = 500
     method: Method = 'default'
+    # A slide direction (fixed frame) the body may not translate along, e.g. a patella
+    # held at its height along the groove by its tendon; None: the whole plane is free.
+    locked_slide: tuple[float, float, float] | None = None
 
     def check(self) -> None:
         """Raise SettleError naming the first invalid parameter."""
@@ -90,6 +93,12 @@ class SettleParams:
                 raise SettleError(f'{name}={value} must be between 0 and pi rad')
         if self.max_iterations < 1:
             raise SettleError(f'max_iterations={self.max_iterations} must be at least 1')
+        if self.locked_slide is not None:
+            lock = unit(np.asarray(self.locked_slide, dtype=float), 'locked slide')
+            push = unit(np.asarray(self.push, dtype=float), 'push direction')
+            if float(np.linalg.norm(lock - (lock @ push) * push)) < 0.1:
+                raise SettleError('the locked slide direction is (nearly) parallel to the push; '
+                                  'give a direction across the push')
         if self.method not in ('default', 'patent'):
             raise SettleError(f"method '{self.method}' is unknown; use default or patent")
 
@@ -172,12 +181,17 @@ class _Settler:
     push: Floats = field(init=False)
     e1: Floats = field(init=False)
     e2: Floats = field(init=False)
+    free: Floats = field(init=False)    # (3,) 1 for each free move coordinate (e1, e2, arc)
     iterations: int = 0
 
     def __post_init__(self) -> None:
         self.push = unit(np.asarray(self.params.push, dtype=float), 'push direction')
-        axis = np.eye(3)[int(np.argmin(np.abs(self.push)))]
+        if self.params.locked_slide is not None:   # e1 is the locked direction
+            axis = np.asarray(self.params.locked_slide, dtype=float)
+        else:
+            axis = np.eye(3)[int(np.argmin(np.abs(self.push)))]
         self.e1 = unit(axis - (axis @ self.push) * self.push, 'in-plane axis')
+        self.free = np.array([0.0 if self.params.locked_slide is not None else 1.0, 1.0, 1.0])
         self.e2 = np.cross(self.push, self.e1)
 
     # ---- geometry helpers -------------------------------------------------------------
@@ -365,6 +379,8 @@ class _Settler:
                 pose = turn(1.0)
             else:
                 slide = self._component_resultant(facing) * p.step_m
+                if p.locked_slide is not None:
+                    slide -= (slide @ self.e1) * self.e1
                 if np.linalg.norm(slide) < p.resolution_m:
                     return self._result(pose, True, 'stable: the resultant of the projected '
                                         'normals is below the resolution', facing, started,
@@ -381,7 +397,7 @@ class _Settler:
             # a motion without collision: translate along Δ again
             bracket = self._drop(pose, p.resolution_m)
             if bracket is None:
-                raise NoContactError(self._travel_limit(pose))
+                return self._result(pose, False, _LOST_CONTACT, contacts, started, backed)
             pose, colliding = bracket
             contacts = self._contacts(colliding)
             motion = self.push
@@ -437,6 +453,7 @@ class _DefaultSearch:
         def moved(base: Pose, x: Floats) -> Pose:
             """Slide by x[0] e1 + x[1] e2 and turn by x[2] / arm about the centre axis."""
             c = base[:3, :3] @ s.pair.moving.centroid + base[:3, 3]
+            x = x * s.free
             out = _rotated(base, rotation_about(s.push, x[2] / arm), c)
             out[:3, 3] += x[0] * s.e1 + x[1] * s.e2
             return out
@@ -451,7 +468,7 @@ class _DefaultSearch:
             lever = np.cross(s.push, pts - c) / arm           # d(point)/d(arc)
             down = -(n @ s.push)                               # > 0
             return np.stack([n @ s.e1, n @ s.e2, np.einsum('ij,ij->i', n, lever)], 1) \
-                / down[:, None]
+                * s.free / down[:, None]
 
         def drop_from(base: Pose, expected_m: float) -> tuple[Pose, Contacts] | None:
             # the first-order model says how far the floor is: step by about that much
@@ -528,7 +545,7 @@ class _DefaultSearch:
             expected = max(step * float(np.min(grads @ direction)), 0.0)
             dropped = drop_from(target, expected)
             if dropped is None:
-                raise NoContactError(s._travel_limit(target))
+                return s._result(target, False, _LOST_CONTACT, floor, started, backed)
             new_pose, new_floor = dropped
             gain = s._depth(new_pose) - s._depth(pose)
             if gain < -tol:            # lost depth: undo, refine
@@ -550,14 +567,19 @@ class _DefaultSearch:
         lift = 2.0 * tol      # a probe must gain more than half the resolution
         for scale in (finest, 3.0 * finest):
             for d in _PROBE_DIRECTIONS:
+                if np.any(d * (1.0 - s.free)):
+                    continue
                 cand = moved(pose, scale * d)
                 if not s.pair.collides(_translated(cand, lift * s.push)):
                     b = s._drop(_translated(cand, lift * s.push), tol)
-                    if b is None:
-                        raise NoContactError(s._travel_limit(cand))
+                    if b is None:     # free all the way down: an edge; not a gain
+                        continue
                     return b[0], s._contacts(b[1])
         return None
 
+
+_LOST_CONTACT = ('lost contact: the body slid off the edge of the fixed body without finding '
+                 'rest along this push')
 
 # Depth gained per metre of lateral motion below which the contact set counts as balanced.
 _FLAT_SLOPE = 1e-3
