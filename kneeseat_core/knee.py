@@ -82,6 +82,7 @@ class KneeConfig:
                             rotation_step_rad=self.settle.rotation_step_rad,
                             rotation_resolution_rad=self.settle.rotation_resolution_rad,
                             max_iterations=self.settle.max_iterations,
+                            max_slide_m=self.settle.max_slide_m,
                             method=self.settle.method)
 
     def metadata(self) -> dict[str, Any]:
@@ -110,7 +111,7 @@ _BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction
 _REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
 _GRID_KEYS = {'flexion_deg', 'varus_deg'}
 _SETTLE_KEYS = {'step_m', 'resolution_m', 'rotation_step_deg', 'rotation_resolution_deg',
-                'max_iterations', 'method'}
+                'max_iterations', 'max_slide_m', 'method'}
 
 
 def _check_keys(data: Any, allowed: set[str], where: str, required: set[str]) -> None:
@@ -204,6 +205,7 @@ def _settle_params(data: Any) -> SettleParams:
             rotation_resolution_rad=(None if data.get('rotation_resolution_deg') is None
                                      else math.radians(float(data['rotation_resolution_deg']))),
             max_iterations=int(data.get('max_iterations', 500)),
+            max_slide_m=float(data.get('max_slide_m', 0.02)),
             method=data.get('method', 'default'))
     except (TypeError, ValueError) as err:
         raise ConfigError(f'settle: {err}') from None

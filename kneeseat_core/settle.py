@@ -76,11 +76,14 @@ class SettleParams:
     # A slide direction (fixed frame) the body may not translate along, e.g. a patella
     # held at its height along the groove by its tendon; None: the whole plane is free.
     locked_slide: tuple[float, float, float] | None = None
+    # A body that slides farther than this across the push has no rest near its start
+    # (e.g. an insert escaping over a condyle at extreme varus): "not converged".
+    max_slide_m: float = 0.02
 
     def check(self) -> None:
         """Raise SettleError naming the first invalid parameter."""
         unit(np.asarray(self.push, dtype=float), 'push direction')
-        for name in ('step_m', 'resolution_m'):
+        for name in ('step_m', 'resolution_m', 'max_slide_m'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise SettleError(f'{name}={value} must be a positive number')
@@ -277,6 +280,15 @@ class _Settler:
     def _depth(self, pose: Pose) -> float:
         return float(pose[:3, 3] @ self.push)
 
+    def _slid_too_far(self, origin: Pose, pose: Pose) -> str | None:
+        """The not-converged reason when `pose` slid beyond `max_slide_m` from `origin`."""
+        d = pose[:3, 3] - origin[:3, 3]
+        slide = float(np.linalg.norm(d - (d @ self.push) * self.push))
+        if slide <= self.params.max_slide_m:
+            return None
+        return (f'slid {slide * 1e3:.1f} mm across the push without finding rest (limit '
+                f'{self.params.max_slide_m * 1e3:.0f} mm): no resting place near the start')
+
     def _result(self, pose: Pose, converged: bool, reason: str, contacts: Contacts,
                 started: float, backed: float) -> SettleResult:
         return SettleResult(pose, converged, reason, self.iterations, self.pair.checks,
@@ -339,6 +351,7 @@ class _Settler:
                     backed: float) -> SettleResult:
         p = self.params
         pose, colliding = bracket
+        origin = pose
         contacts = self._contacts(colliding)
         motion = self.push
         rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
@@ -401,6 +414,9 @@ class _Settler:
             pose, colliding = bracket
             contacts = self._contacts(colliding)
             motion = self.push
+            too_far = self._slid_too_far(origin, pose)
+            if too_far:
+                return self._result(pose, False, too_far, contacts, started, backed)
         return self._result(pose, False, f'iteration cap ({p.max_iterations}) reached',
                             contacts, started, backed)
 
@@ -553,6 +569,9 @@ class _DefaultSearch:
                 blocked = Contacts.empty()
                 continue
             pose, floor = new_pose, new_floor
+            too_far = s._slid_too_far(self.bracket[0], pose)
+            if too_far:
+                return s._result(pose, False, too_far, floor, started, backed)
             if not refining:
                 refine_dir = None
                 if gain < tol:
