@@ -14,6 +14,7 @@ import argparse
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+import signal
 import struct
 import sys
 import threading
@@ -27,6 +28,7 @@ from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 import yaml
 
@@ -234,6 +236,16 @@ def _play(messages: list[BagMessage], publishers: dict[str, Any], rate: float, l
     return sent
 
 
+def _stop_on_signals(stop: threading.Event) -> dict[int, Any]:
+    """SIGINT/SIGTERM end the replay cleanly (main thread only); returns old handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        previous[signum] = signal.signal(signum, lambda *_: stop.set())
+    return previous
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `replay` console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -246,13 +258,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KneeseatError as err:
         print(f'replay: error: {err}', file=sys.stderr)
         return 2
+    stop = threading.Event()
+    previous = _stop_on_signals(stop)
     context = Context()
-    rclpy.init(args=['replay', *argv], context=context)
+    rclpy.init(args=['replay', *argv], context=context,
+               signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('kneeseat_replay', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    stop = threading.Event()
-    ok = context.ok
+
+    def ok() -> bool:
+        return context.ok() and not stop.is_set()
+
     status = 0
     try:
         pubs = {topic: node.create_publisher(cls, topic, PUBLISHER_QOS)
@@ -263,7 +280,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             deadline = time.monotonic() + args.wait_timeout_s
             while min(p.get_subscription_count() for p in pubs.values()) \
                     < args.wait_for_subscribers:
-                if time.monotonic() > deadline or not ok():
+                if not ok():
+                    return 0
+                if time.monotonic() > deadline:
                     raise TimeoutError
                 executor.spin_once(timeout_sec=WAIT_SLICE_S)
         if args.delay_s and not _wait(stop, args.delay_s, ok):
@@ -288,6 +307,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     return status
 
 
