@@ -229,3 +229,14 @@ def test_millimetre_mesh_without_units_suggests_mm(
                         str(scene['moving'])], capsys)
     assert code == 2
     assert_one_line_error(err, '--units mm')
+
+
+def test_sliding_off_the_edge_is_not_converged(scene: dict[str, Path],
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A push tilted against a flat slab has no rest: the ball slides towards the edge.
+    It did touch, so this is an honest not-converged end (exit 3), not 'no contact'."""
+    code, out, err = run([*base(scene), '--push', '-0.3,-1,0', '--json'], capsys)
+    assert code == 3, err
+    data = json.loads(out)
+    assert data['converged'] is False and data['reason']
+    assert err == ''
