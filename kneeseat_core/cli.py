@@ -25,6 +25,13 @@ log = logging.getLogger('kneeseat')
 EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_NO_CONTACT = 0, 1, 2, 3, 4
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (no usage block) and exit 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_BAD_INPUT, f'{self.prog}: error: {message}; see --help\n')
+
+
 class _UsageError(KneeseatError):
     """A command-line value that cannot be parsed."""
 
@@ -219,13 +226,14 @@ def _cmd_render(args: argparse.Namespace) -> int:
 # ---- parser -----------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `kneeseat` (subcommands register their handler as `command`)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog='kneeseat', description='Settle rigid bones by collision detection '
         '(US 6,708,142), build pose tables over a joint\'s range of motion, inspect them.')
     parser.add_argument('--debug', action='store_true', help='show tracebacks')
     parser.add_argument('-v', '--verbose', action='count', default=0,
                         help='more log output (-v info, -vv debug)')
-    sub = parser.add_subparsers(dest='name', required=True, metavar='COMMAND')
+    sub = parser.add_subparsers(dest='name', required=True, metavar='COMMAND',
+                                parser_class=_Parser)
 
     p = sub.add_parser('settle', help='settle one moving mesh against a fixed one')
     p.add_argument('--fixed', type=Path, required=True, help='reference mesh (fixed)')

@@ -40,7 +40,9 @@ def load_mesh(path: Path | str, units: Units = 'm') -> trimesh.Trimesh:
     if not path.is_file():
         raise MeshError(f'{path}: no such mesh file; check the path')
     try:
-        loaded = trimesh.load(str(path), force='mesh')
+        # process=False: trimesh's processing drops faces with NaN vertices, which would
+        # hide a broken file; check_mesh validates first, then merges vertices
+        loaded = trimesh.load(str(path), force='mesh', process=False)
     except Exception as err:  # trimesh raises many types for a bad file
         raise MeshError(f'{path}: not a readable mesh ({type(err).__name__}: {err}); '
                         'give an STL, PLY, OBJ, OFF or GLB file') from None
@@ -63,7 +65,7 @@ def check_mesh(mesh: trimesh.Trimesh, name: str, units: Units = 'm') -> trimesh.
     if not np.all(np.isfinite(mesh.vertices)):
         raise MeshError(f'{name}: mesh has NaN or infinite vertex coordinates; '
                         'repair or re-export it')
-    mesh = mesh.copy()
+    mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)   # merge vertices
     keep = mesh.nondegenerate_faces() & mesh.unique_faces()
     dropped = int(len(keep) - keep.sum())
     if dropped:

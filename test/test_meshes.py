@@ -142,10 +142,6 @@ def test_check_mesh_refuses_empty_and_non_finite() -> None:
         check_mesh(bad, 'bad')
 
 
-@pytest.mark.xfail(strict=True, reason='meshes.load_mesh: trimesh.load(process=True) drops '
-                   'faces with non-finite vertices before check_mesh sees them, so a file with '
-                   'NaN loads as a smaller open mesh with only a watertight warning; load with '
-                   'process=False and check finiteness first')
 @pytest.mark.parametrize('suffix', ['.obj', '.ply'])
 def test_nan_coordinates_in_a_file(tmp_path: Path, suffix: str) -> None:
     vertices = TETRA_VERTICES * 1e-3

@@ -183,9 +183,6 @@ def test_bad_parameters(scene: dict[str, Path], args: list[str],
     assert err.strip().splitlines()[-1].startswith('kneeseat settle: error: ')
 
 
-@pytest.mark.xfail(strict=True, reason='cli.py: argparse prints its multi-line usage block '
-                   'before the error line for values rejected at parse time (--push, '
-                   '--units, --method); the issue asks for exactly one line on stderr')
 @pytest.mark.parametrize('args', [['--push=1,2'], ['--units', 'inch']])
 def test_parse_time_errors_are_one_line(scene: dict[str, Path], args: list[str],
                                         capsys: pytest.CaptureFixture[str]) -> None:
