@@ -36,6 +36,7 @@ class RigidBody:
     centroid: Floats    # (3,) m, centre of the surface
     bound_centre: Floats  # (3,) m, centre of a sphere enclosing every vertex
     bound_radius: float   # m
+    reach: float          # m, farthest vertex from the centroid
 
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh) -> RigidBody:
@@ -54,8 +55,10 @@ class RigidBody:
         lengths[flat] = 1.0
         centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
         radius = float(np.sqrt(np.max(np.sum((vertices - centre) ** 2, axis=1))))
+        centroid = np.asarray(mesh.centroid, dtype=np.float64)
+        reach = float(np.sqrt(np.max(np.sum((vertices - centroid) ** 2, axis=1))))
         return cls(mesh, bvh, np.asarray(mesh.triangles_center), normals / lengths,
-                   vertices, np.asarray(mesh.centroid, dtype=np.float64), centre, radius)
+                   vertices, centroid, centre, radius, reach)
 
 
 @dataclass(slots=True, eq=False)

@@ -30,13 +30,13 @@ dichotomy, contacts = colliding reference triangles with the reference's outward
      contacts join the contact set at that depth, so the next direction respects them
      (this is what frees a wedged body, instead of cycling slide/rotate).
   D3 step control: the step halves whenever a move fails to gain T2 along Δ; moves that
-     lose depth are undone. Exact contact along Δ is found to T2 = resolution / 4 so that
+     lose depth are undone. Exact contact along Δ is found to T2 = resolution / 2 so that
      depth comparisons are meaningful at the resolution.
   D4 rotation resolution is an arc at the farthest vertex (resolution / radius) unless
      given explicitly, so a rotation can always be refined below one step.
   D5 rest is verified, not assumed: when the step is below the resolution, probe moves
      (slides, rotations about Δ and their combinations, at several scales) must all fail
-     to gain more than half the resolution along Δ; a probe that gains restarts the loop.
+     to gain more than the resolution along Δ; a probe that gains restarts the loop.
   D6 honest ends: "converged" only after D5; otherwise the iteration cap is reported.
 """
 from __future__ import annotations
@@ -299,7 +299,7 @@ class _Settler:
         pose, backed = self._back_out(np.asarray(self.start, dtype=np.float64))
         limit = self._travel_limit(pose)
         tol = self.params.resolution_m if self.params.method == 'patent' \
-            else self.params.resolution_m / 4.0
+            else self.params.resolution_m / 2.0
         bracket = self._drop(pose, tol, limit)
         if bracket is None:
             raise NoContactError(limit)
@@ -427,10 +427,18 @@ class _Settler:
 
 
 def _min_norm_point(points: Floats, iterations: int = 64) -> Floats:
-    """Minimum-norm point of the convex hull of `points` (k, d), by Frank-Wolfe."""
+    """Minimum-norm point of the convex hull of `points` (k, d), by Frank-Wolfe.
+
+    Stops when the duality gap x.x - min_j p_j.x falls below 1e-4 x.x (the direction is
+    then exact to well under a degree).
+    """
     x = points[int(np.argmin(np.einsum('ij,ij->i', points, points)))].copy()
     for _ in range(iterations):
-        j = int(np.argmin(points @ x))
+        dots = points @ x
+        j = int(np.argmin(dots))
+        xx = float(x @ x)
+        if xx - float(dots[j]) <= 1e-4 * xx + 1e-18:
+            break
         d = points[j] - x
         dd = float(d @ d)
         if dd < 1e-30:
@@ -451,11 +459,11 @@ class _DefaultSearch:
 
     def run(self, started: float, backed: float) -> SettleResult:
         s, p = self.s, self.s.params
-        tol = p.resolution_m / 4.0
+        tol = p.resolution_m / 2.0
         pose, colliding = self.bracket
         floor = s._contacts(colliding)
         centre = pose[:3, :3] @ s.pair.moving.centroid + pose[:3, 3]
-        radius = max(s._radius_about(pose, centre), p.step_m)
+        radius = max(s.pair.moving.reach, p.step_m)      # bounds the farthest vertex
         rot_step = p.rotation_step_rad if p.rotation_step_rad is not None else p.step_m / radius
         rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
             else p.resolution_m / radius
@@ -583,7 +591,7 @@ class _DefaultSearch:
                ) -> tuple[Pose, Contacts] | None:
         """D5: try slides, turns and combinations; return the first that gains depth."""
         s = self.s
-        lift = 2.0 * tol      # a probe must gain more than half the resolution
+        lift = 2.0 * tol      # a probe must gain more than the resolution
         for scale in (finest, 3.0 * finest):
             for d in _PROBE_DIRECTIONS:
                 if np.any(d * (1.0 - s.free)):
