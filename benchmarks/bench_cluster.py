@@ -118,8 +118,8 @@ def main() -> int:
         cells = len(config.bodies) * config.flexion_rad.size * config.varus_rad.size
         print(f'default knee, flexion {args.flexion_grid} x varus {args.varus_grid} deg: '
               f'{cells} table cells; {args.workers} workers; {args.runs} runs, medians')
-        rows: dict[str, list[dict[str, float]]] = {k: [] for k in
-                                                    ('pool', 'dask', 'pool*', 'dask*')}
+        names = ('pool', 'dask', 'pool*', 'dask*')
+        rows: dict[str, list[dict[str, float]]] = {k: [] for k in names}
         results: dict[str, SweepResult] = {}
         started = time.perf_counter()
         with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
