@@ -1,0 +1,136 @@
+"""`kneeseat build` end to end, and a real built table refusing damage (issue 3).
+
+test_table.py covers every rejection on synthetic tables; here the same failures are made
+on a table the CLI really built from the default knee (a coarse grid, seconds), and each
+must be refused by `read_table` with a clear message and by `kneeseat info` with exit
+code 2 and exactly one line on stderr (no traceback).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+import json
+from pathlib import Path
+import shutil
+import zipfile
+
+import numpy as np
+import pytest
+
+from kneeseat_core.build import materialise_default_knee
+from kneeseat_core.cli import main
+from kneeseat_core.errors import TableError
+from kneeseat_core.table import read_table
+
+GRID = ('--flexion-grid', '0,-90,30', '--varus-grid', '-10,10,10')
+
+
+@pytest.fixture(scope='module')
+def built(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Path]]:
+    """(table, mesh directory) of a coarse default-knee build through the CLI."""
+    root = tmp_path_factory.mktemp('build')
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        monkeypatch.setenv('XDG_CACHE_HOME', str(root / 'cache'))
+        out = root / 'tables' / 'knee.npz'          # the directory is created by build
+        assert main(['build', '--out', str(out), '--workers', '1', '--quiet', *GRID]) == 0
+        yield out, materialise_default_knee().parent
+
+
+def test_build_writes_a_verified_table(built: tuple[Path, Path],
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    table_path, mesh_dir = built
+    table = read_table(table_path, meshes={name: mesh_dir / f'{name}.stl'
+                                           for name in ('femur', 'tibia', 'patella')})
+    assert table.bodies == ('tibia', 'patella')
+    assert table.position_m.shape == (2, 4, 3, 3)
+    assert np.allclose(np.degrees(table.flexion_rad), [-90, -60, -30, 0])
+    assert np.allclose(np.degrees(table.varus_rad), [-10, 0, 10])
+    assert table.converged.all()
+    meta = table.metadata
+    assert meta['summary']['cells'] == 24 and meta['summary']['converged'] == 24
+    assert meta['settle']['resolution_m'] == 1e-4 and meta['settle']['step_m'] == 1e-3
+    assert meta['config']['resolved']['varus_deg'] == [-10.0, 0.0, 10.0]
+    assert main(['info', str(table_path)]) == 0
+    out = capsys.readouterr().out
+    assert 'tibia: frame tibia' in out and 'converged 100.0% (12/12)' in out
+    assert not list(table_path.parent.glob('.*.tmp'))       # atomic write left nothing
+
+
+def flip_byte_in_member(path: Path, member: str) -> None:
+    """Flip one bit of the last data byte of `member` inside the (stored) zip."""
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(member)
+    data = bytearray(path.read_bytes())
+    # local header: 30 bytes + name + extra, then the member's bytes
+    name_len = int.from_bytes(data[info.header_offset + 26:info.header_offset + 28], 'little')
+    extra_len = int.from_bytes(data[info.header_offset + 28:info.header_offset + 30], 'little')
+    start = info.header_offset + 30 + name_len + extra_len
+    data[start + info.compress_size - 1] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
+def resave(path: Path, edit: Callable[[dict[str, np.ndarray]], None]) -> None:
+    """Rewrite a table's .npz after `edit` changed its arrays (no new hash)."""
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {name: np.array(npz[name]) for name in npz.files}
+    edit(arrays)
+    with open(path, 'wb') as fh:
+        np.savez(fh, allow_pickle=False, **arrays)
+
+
+def _flipped(path: Path) -> None:
+    flip_byte_in_member(path, 'position.npy')
+
+
+def _truncated(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[:path.stat().st_size // 2])
+
+
+def _edited(path: Path) -> None:
+    def nudge(arrays: dict[str, np.ndarray]) -> None:
+        arrays['position'][0, 1, 1, 2] += 1e-4             # 0.1 mm, one cell
+
+    resave(path, nudge)
+
+
+def _wrong_schema(path: Path) -> None:
+    def schema(arrays: dict[str, np.ndarray]) -> None:
+        meta = json.loads(str(arrays['metadata'][()]))
+        meta['schema'] = 'kneeseat.table/99'
+        arrays['metadata'] = np.array(json.dumps(meta))
+
+    resave(path, schema)
+
+
+@pytest.mark.parametrize('damage, message', [
+    (_flipped, r'is corrupt|not a readable table'),
+    (_truncated, r'not a readable table .*truncated, corrupt'),
+    (_edited, r'do not match their SHA-256 .*corrupt or modified'),
+    (_wrong_schema, r"unknown table schema 'kneeseat.table/99'"),
+], ids=['flipped-byte', 'truncated', 'edited-array', 'wrong-schema'])
+def test_damaged_real_table_is_refused(built: tuple[Path, Path], tmp_path: Path,
+                                       damage: Callable[[Path], None], message: str,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / 'damaged.npz'
+    shutil.copyfile(built[0], path)
+    damage(path)
+    with pytest.raises(TableError, match=message):
+        read_table(path)
+    capsys.readouterr()
+    assert main(['info', str(path)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith('kneeseat info: error: table file ')
+    assert 'rebuild' in lines[0] or 'kneeseat version' in lines[0]   # says how to fix it
+    assert 'Traceback' not in captured.err and captured.out == ''
+
+
+def test_real_table_refuses_other_meshes(built: tuple[Path, Path], tmp_path: Path) -> None:
+    table_path, mesh_dir = built
+    other = tmp_path / 'tibia.stl'                  # same name, one vertex moved
+    data = bytearray((mesh_dir / 'tibia.stl').read_bytes())
+    data[84 + 12] ^= 0x01                           # first triangle, first vertex, x
+    other.write_bytes(bytes(data))
+    with pytest.raises(TableError, match=r"built from other meshes: 'tibia' mesh .*rebuild"):
+        read_table(table_path, meshes={'tibia': other})
+    read_table(table_path, meshes={'tibia': mesh_dir / 'tibia.stl'})   # the right one
