@@ -2,23 +2,23 @@
 from __future__ import annotations
 
 import argparse
-import logging
-import math
-import os
-import sys
 from concurrent.futures import Executor
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from importlib import resources
+import logging
+import math
+import os
 from pathlib import Path
+import sys
 from typing import Any, Callable, Iterator
 
 from tqdm import tqdm
 
 from .errors import ConfigError
-from .knee import KneeConfig, grid_values, load_config
-from .sweep import SweepResult, default_workers, process_executor, sweep
-from .table import PoseTable, file_sha256, write_table
+from .knee import grid_values, KneeConfig, load_config
+from .sweep import default_workers, process_executor, sweep, SweepResult
+from .table import file_sha256, PoseTable, write_table
 
 __all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
            'make_table', 'register_commands', 'executor_for']
@@ -224,7 +224,7 @@ def register_commands(sub: Any) -> None:
                    help=f'worker processes (default: all cores, here {default_workers()})')
     p.add_argument('--scheduler', metavar='tcp://HOST:PORT',
                    help='run the sweep on a Dask distributed cluster instead')
-    p.add_argument('--mesh-dir', type=Path, help='directory the config\'s meshes are in')
+    p.add_argument('--mesh-dir', type=Path, help='directory that holds the config meshes')
     p.add_argument('--flexion-grid', type=_grid_arg, metavar='START,STOP,STEP',
                    help='override the flexion grid (degrees)')
     p.add_argument('--varus-grid', type=_grid_arg, metavar='START,STOP,STEP',
@@ -236,4 +236,3 @@ def register_commands(sub: Any) -> None:
     p = sub.add_parser('synth', help='write the embedded default knee (meshes + config)')
     p.add_argument('--out', type=Path, required=True, help='output directory')
     p.set_defaults(command=_cmd_synth)
-

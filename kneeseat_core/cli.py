@@ -10,8 +10,8 @@ import argparse
 import json
 import logging
 import math
-import sys
 from pathlib import Path
+import sys
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -228,7 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `kneeseat` (subcommands register their handler as `command`)."""
     parser = _Parser(
         prog='kneeseat', description='Settle rigid bones by collision detection '
-        '(US 6,708,142), build pose tables over a joint\'s range of motion, inspect them.')
+        '(US 6,708,142), build pose tables over a range of motion, inspect them.')
     parser.add_argument('--debug', action='store_true', help='show tracebacks')
     parser.add_argument('-v', '--verbose', action='count', default=0,
                         help='more log output (-v info, -vv debug)')

@@ -9,8 +9,8 @@ Poses are (4, 4) `fixed_from_moving`; the fixed body sits at identity.
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
+import time
 
 import fcl
 import numpy as np

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ConfigError
-from .typed import Floats, Pose, Quat, Vec3
+from .typed import Floats, Pose, Vec3
 
 __all__ = ['Tolerances', 'TOL', 'unit', 'rotation_about', 'pose_from', 'rotation_angle',
            'quat_from_matrix', 'matrix_from_quat', 'KneeAxes']
@@ -131,7 +131,8 @@ class KneeAxes:
         Raises:
             ConfigError: an axis is zero, or two axes are not orthogonal.
         """
-        f, v, l_ = unit(flexion, 'flexion axis'), unit(varus, 'varus axis'), unit(long, 'long axis')
+        f, v = unit(flexion, 'flexion axis'), unit(varus, 'varus axis')
+        l_ = unit(long, 'long axis')
         for (na, a), (nb, b) in (((('flexion', f), ('varus', v))), (('flexion', f), ('long', l_)),
                                  (('varus', v), ('long', l_))):
             if abs(float(a @ b)) > TOL.orthogonal:

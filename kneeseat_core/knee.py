@@ -15,8 +15,8 @@ total knee: with any fixed push it leaves the component within 10 degrees of fle
 """
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
+import math
 from pathlib import Path
 from typing import Any
 

@@ -41,18 +41,18 @@ dichotomy, contacts = colliding reference triangles with the reference's outward
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 import itertools
 import logging
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from .collision import CollisionPair, RigidBody
 from .errors import NoContactError, SettleError
-from .geometry import TOL, rotation_about, unit
+from .geometry import rotation_about, TOL, unit
 from .typed import Floats, Pose
 
 __all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'settle', 'settle_bodies']
@@ -462,7 +462,6 @@ class _DefaultSearch:
         tol = p.resolution_m / 2.0
         pose, colliding = self.bracket
         floor = s._contacts(colliding)
-        centre = pose[:3, :3] @ s.pair.moving.centroid + pose[:3, 3]
         radius = max(s.pair.moving.reach, p.step_m)      # bounds the farthest vertex
         rot_step = p.rotation_step_rad if p.rotation_step_rad is not None else p.step_m / radius
         rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
