@@ -125,6 +125,7 @@ class DaskExecutor(Executor):
 
     def __init__(self, client: Client, retries: int = RETRIES) -> None:
         self.client = client
+        self.address = str(client.scheduler.address)
         self._inner = client.get_executor(retries=retries, pure=False)
         self._plugins: dict[tuple[str, ...], str] = {}
         self._lock = threading.Lock()
@@ -132,9 +133,10 @@ class DaskExecutor(Executor):
     def submit(self, fn: Callable, /, *args: Any, **kwargs: Any) -> Future:  # type: ignore
         """Run `fn(*args, **kwargs)` on the cluster; ship the meshes of any `ChainJob` first."""
         args = tuple(self._with_meshes(a) if isinstance(a, ChainJob) else a for a in args)
+        inner = self._inner.submit(fn, *args, **kwargs)
         outer: Future = Future()
-        self._inner.submit(fn, *args, **kwargs).add_done_callback(
-            lambda inner: _forward(inner, outer, self.client.scheduler.address))
+        outer.add_done_callback(lambda done: done.cancelled() and inner.cancel())
+        inner.add_done_callback(lambda done: _forward(done, outer, self.address))
         return outer
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
@@ -197,6 +199,8 @@ class DaskExecutor(Executor):
 
 def _forward(inner: Future, outer: Future, address: str) -> None:
     """Copy `inner`'s outcome to `outer`; a chain that kept killing workers -> KneeseatError."""
+    if outer.done():              # cancelled by the caller
+        return
     if inner.cancelled():
         outer.cancel()
         outer.set_running_or_notify_cancel()
