@@ -19,16 +19,15 @@ and a long-lived worker never reuses bodies of a mesh file that has since change
 """
 from __future__ import annotations
 
+from concurrent.futures import as_completed, Executor, Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
 import logging
 import math
-import os
-import time
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
-
 import multiprocessing
+import os
 import threading
+import time
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -37,7 +36,7 @@ from .errors import NoContactError, SettleError
 from .geometry import pose_from, quat_from_matrix
 from .knee import KneeConfig
 from .meshes import load_mesh
-from .settle import SettleParams, settle
+from .settle import settle, SettleParams
 from .table import file_sha256
 from .typed import Floats, Pose
 
