@@ -298,6 +298,8 @@ def sweep(config: KneeConfig, executor: Executor,
             poses[b] = poses[b, :, v0:v0 + 1]
             converged[b] = converged[b, :, v0:v0 + 1]
             iterations[b] = iterations[b, :, v0:v0 + 1]
+            if progress:           # the copies are cells of the table too
+                progress(nf * (nv - 1))
     return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
                        converged, iterations, checks, time.perf_counter() - started,
                        tuple(failures))
