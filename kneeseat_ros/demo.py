@@ -146,14 +146,22 @@ def prepare_table(out_dir: Path, step_deg: float, workers: int,
 
 
 # ----------------------------------------------------------------------------- phase 3
-def demo_bag(out_dir: Path, table: PoseTable) -> Path:
+def demo_bag(out_dir: Path, table: PoseTable, shipped: Path = SHIPPED_BAG) -> Path:
     """The shipped gait angle bag, or the same bag regenerated into `out_dir/angle_bags/`.
 
+    Without the repository (an installed package has no `data/`), the bag is written as
+    `scripts/make_demo_bag` does (10 s gait cycle, 100 Hz, the same start stamp), with the
+    table's axes and reference frame; an earlier regenerated bag is reused.
+
+    Args:
+        out_dir: demo directory.
+        table: the served table (axes, reference frame).
+        shipped: where the shipped bag would be.
     Raises:
         KneeseatError: the bag cannot be written.
     """
-    if (SHIPPED_BAG / 'metadata.yaml').is_file():
-        return SHIPPED_BAG
+    if (shipped / 'metadata.yaml').is_file():
+        return shipped
     from kneeseat_ros.make_bag import DEFAULT_START_NS, gait, write_angle_bag
     from kneeseat_ros.replay import load_messages
     bag = out_dir / 'angle_bags' / 'gait_demo'
@@ -595,7 +603,7 @@ def _print_summary(sent: int, s: SessionStats, dev_m: float, dev_q: float, table
         f'  table        {table_path} ({len(table.flexion_rad)} x {len(table.varus_rad)} grid, '
         f'bodies {", ".join(table.bodies)}; {how})',
         f'  replayed     {bag} ({sent} messages on {POSE_TOPIC})',
-        f'  messages     in {s.inputs} (of {sent} sent, {sent - s.inputs} lost before the '
+        f'  messages     in {s.inputs} (of {sent} sent; {sent - s.inputs} never taken by the '
         f'node), out {s.outputs} ({per_body:g} per body), answered {s.answered}, '
         f'dropped {dropped}, clamped {clamped}',
         f'  latency      p50 {s.latency_ms(50):.3f} ms, p99 {s.latency_ms(99):.3f} ms, max '
