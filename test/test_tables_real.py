@@ -4,7 +4,9 @@ The table is built once per module with `kneeseat build config/tka_dm.yaml` (the
 grid: flexion 0 to -90, varus -10 to +10, 1 degree; 2 workers). Penetration is then
 checked with python-fcl objects made here from the STL files, using nothing of the settle
 or of `CollisionPair`: at every cell the moving body, moved back by the resolution along
-its push, must not touch the femoral component. Skipped when ../shared/data/tka_dm is absent.
+its push, must not touch the femoral component, and at every converged cell, moved one
+resolution further, it must (it rests in contact). Skipped when ../shared/data/tka_dm is
+absent.
 """
 from __future__ import annotations
 
