@@ -1,0 +1,129 @@
+"""Cost of a full table build: both knees, 1 and 2 workers (issue 3).
+
+Run: `python benchmarks/bench_build.py [--knees default,tka] [--workers 1,2]
+[--data ../shared/data/tka_dm] [--flexion-grid=0,-90,1 --varus-grid=-10,10,1]`.
+Each build is `kneeseat build` (tibia and patella, the patent grid 91 x 21, step 1 mm,
+resolution 0.1 mm unless overridden) run as its own subprocess into a temporary directory,
+so that its peak memory can be read from the kernel: `os.wait4` returns the resource
+usage of the build and of the worker processes it waited for, whose `ru_maxrss` is the
+peak resident set of the largest of them (not a sum). For each build it prints wall time
+(of the subprocess: start-up, meshes, sweep and the table write), the sweep's own wall time
+from the table's metadata, cells per second, collision checks per cell, converged cells,
+and the peak RSS; with the machine (CPU model, count) and the load average before and after
+each build, because the 2 cores are shared with other engineers.
+Target from issue 3: the total knee's table in <= 60 s wall with 2 workers.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from kneeseat_core.table import read_table
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = REPO.parent / 'shared' / 'data' / 'tka_dm'
+TARGET_TKA_S = 60.0
+
+
+def cpu_model() -> str:
+    """The CPU model name from /proc/cpuinfo, or the platform's guess."""
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('model name'):
+                return line.split(':', 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def load_average() -> str:
+    """The 1, 5 and 15 minute load averages."""
+    return ', '.join(f'{v:.2f}' for v in os.getloadavg())
+
+
+def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> dict:
+    """Run one `kneeseat build` subprocess; return its measurements."""
+    out = work / f'{knee}_{workers}.npz'
+    cmd = [sys.executable, '-m', 'kneeseat_core', 'build', '--out', str(out),
+           '--workers', str(workers), '--quiet', *grid]
+    if knee == 'tka':
+        cmd[4:4] = [str(REPO / 'config' / 'tka_dm.yaml'), '--mesh-dir', str(data)]
+    env = dict(os.environ, XDG_CACHE_HOME=str(work / 'cache'))
+    before = load_average()
+    started = time.perf_counter()
+    log = work / f'{knee}_{workers}.log'
+    with open(log, 'wb') as sink:       # a file, not a pipe: nothing can block the build
+        proc = subprocess.Popen(cmd, env=env, stdout=sink, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - started
+    output = log.read_text(errors='replace').strip()
+    code = os.waitstatus_to_exitcode(status)
+    if code != 0:
+        raise SystemExit(f'build {knee} with {workers} workers failed (exit {code}): '
+                         f'{output}')
+    table = read_table(out)
+    summary = table.metadata['summary']
+    conv = np.asarray(table.converged)
+    return {
+        'knee': knee, 'workers': workers, 'wall_s': wall, 'sweep_s': summary['wall_s'],
+        'cells': summary['cells'], 'cells_per_s': summary['cells'] / summary['wall_s'],
+        'checks_per_cell': summary['collision_checks'] / summary['cells'],
+        'converged': 100.0 * conv.mean(),
+        'per_body': ', '.join(f'{n} {100.0 * conv[b].mean():.1f}%'
+                              for b, n in enumerate(table.bodies)),
+        'peak_rss_mb': usage.ru_maxrss / 1024.0,      # Linux: kilobytes
+        'cpu_s': usage.ru_utime + usage.ru_stime,
+        'load_before': before, 'load_after': load_average(),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--knees', default='default,tka', help='comma list: default, tka')
+    parser.add_argument('--workers', default='1,2', help='comma list of worker counts')
+    parser.add_argument('--data', type=Path, default=DEFAULT_DATA,
+                        help='directory of the total-knee meshes')
+    parser.add_argument('--flexion-grid', help='override, START,STOP,STEP degrees')
+    parser.add_argument('--varus-grid', help='override, START,STOP,STEP degrees')
+    args = parser.parse_args()
+    grid = []
+    if args.flexion_grid:
+        grid += [f'--flexion-grid={args.flexion_grid}']
+    if args.varus_grid:
+        grid += [f'--varus-grid={args.varus_grid}']
+    knees = [k for k in args.knees.split(',') if k]
+    if 'tka' in knees and not (args.data / 'femoral_component.stl').is_file():
+        print(f'skipping the total knee: no meshes in {args.data}', file=sys.stderr)
+        knees.remove('tka')
+    print(f'machine: {platform.platform()}; {cpu_model()}; {os.cpu_count()} CPUs; '
+          f'Python {platform.python_version()}; load average {load_average()}')
+    rows = []
+    with tempfile.TemporaryDirectory(prefix='bench_build.') as tmp:
+        for knee in knees:
+            for workers in (int(w) for w in args.workers.split(',')):
+                row = build(knee, workers, args.data, grid, Path(tmp))
+                rows.append(row)
+                print(f'{knee:7s} workers {workers}: wall {row["wall_s"]:6.1f} s (sweep '
+                      f'{row["sweep_s"]:.1f} s), {row["cells"]} cells, {row["cells_per_s"]:.1f}'
+                      f' cells/s, {row["checks_per_cell"]:.0f} checks/cell, converged '
+                      f'{row["converged"]:.1f}% ({row["per_body"]}), peak RSS '
+                      f'{row["peak_rss_mb"]:.0f} MB, CPU {row["cpu_s"]:.0f} s; load '
+                      f'{row["load_before"]} -> {row["load_after"]}', flush=True)
+    for row in rows:
+        if row['knee'] == 'tka' and row['workers'] == 2 and not grid:
+            verdict = 'met' if row['wall_s'] <= TARGET_TKA_S else 'NOT met'
+            print(f'target (total knee, 2 workers, <= {TARGET_TKA_S:.0f} s wall): {verdict} '
+                  f'({row["wall_s"]:.1f} s)')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
