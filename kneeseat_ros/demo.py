@@ -219,9 +219,9 @@ def _stop_child(proc: subprocess.Popen[Any] | None, timeout_s: float) -> int | N
 
 
 class _Monitor:
-    """An rclpy node of the demo's own listening to /diagnostics of the server."""
+    """An rclpy node of the demo's own listening to /diagnostics of its server."""
 
-    def __init__(self) -> None:
+    def __init__(self, table_path: Path) -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -236,14 +236,17 @@ class _Monitor:
         self.executor.add_node(self.node)
         self.values: dict[str, str] = {}
         self.count = 0
+        self._table = str(table_path)
         qos = QoSProfile(depth=10, reliability=QoSReliabilityPolicy.RELIABLE,
                          durability=QoSDurabilityPolicy.VOLATILE)
         self.node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diag, qos)
 
     def _on_diag(self, msg: Any) -> None:
         for status in msg.status:
-            if status.name == STATUS_NAME:
-                self.values = {kv.key: kv.value for kv in status.values}
+            values = {kv.key: kv.value for kv in status.values}
+            # another server on this ROS domain serves another table: not ours
+            if status.name == STATUS_NAME and values.get('table') == self._table:
+                self.values = values
                 self.count += 1
 
     def spin_until(self, done: Callable[[], bool], timeout_s: float,
@@ -491,13 +494,15 @@ def run(args: argparse.Namespace) -> int:
     step = 1.0 if args.full_grid else args.grid_step_deg
     print(f'demo: output in {out}, ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]}', flush=True)
 
+    from kneeseat_ros.replay import load_messages
+    if args.bag is not None:
+        load_messages(args.bag, [POSE_TOPIC])        # a bad --bag fails before the build
     t = time.monotonic()
     table_path, table, how = prepare_table(out, step, args.workers, not args.quiet)
     timings['table'] = time.monotonic() - t
     print(f'demo: table {table_path} ({how}, {timings["table"]:.1f} s)', flush=True)
     bag = args.bag if args.bag is not None else demo_bag(out, table)
-    from kneeseat_ros.replay import load_messages
-    sent = sum(1 for m in load_messages(bag) if m.topic == POSE_TOPIC)
+    sent = len(load_messages(bag, [POSE_TOPIC]))
 
     sessions = out / 'sessions'
     sessions.mkdir(exist_ok=True)
@@ -512,7 +517,7 @@ def run(args: argparse.Namespace) -> int:
     log_stream: IO[bytes] | None = None
     try:
         t = time.monotonic()
-        monitor = _Monitor()
+        monitor = _Monitor(table_path)
         log_stream = open(server_log, 'wb')
         server = subprocess.Popen(
             [sys.executable, '-m', 'kneeseat_ros.table_server', '--ros-args',

@@ -197,3 +197,12 @@ def test_bad_arguments_exit_2(argv: list[str], tmp_path: Path,
     err = capsys.readouterr().err
     assert 'Traceback' not in err and err.strip()
     assert not any(tmp_path.iterdir())       # nothing built, nothing started
+
+
+def test_bad_bag_fails_before_the_build(tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['--out', str(tmp_path), '--bag', str(tmp_path / 'nope'), '--quiet']) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('demo: error: bag ') and err.count('\n') == 1, err
+    assert 'does not exist' in err
+    assert not list(tmp_path.glob('*.npz')) and not (tmp_path / 'default_knee').exists()
