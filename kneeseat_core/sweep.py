@@ -11,7 +11,10 @@ plugs in the same way). A body whose attitude ignores varus (`varus_fraction: 0`
 patella) is settled on one column and copied across varus.
 
 A warm start keeps the neighbour's spin about the push and its position relative to the
-joint (both turned by the change of attitude), backed off one step along the push.
+joint (both turned by the change of attitude), backed off one step along the push. A cell
+whose warm-started settle does not converge (the chain drifted to where the push has no
+rest nearby) is settled once more from the cold start - the body as delivered, turned by
+the cell's attitude - and only a converged result seeds the next cell.
 Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`. The
 spec carries each mesh's SHA-256, so a worker that cannot read the paths (a remote Dask
 worker) finds the bytes shipped to it by content (`register_mesh_copy`, kneeseat_core/cluster.py),
@@ -132,6 +135,11 @@ def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
     return pose_from(turn @ previous[:3, :3], turn @ previous[:3, 3] - back_off_m * push)
 
 
+def cold_start(attitude: Floats, params: SettleParams) -> Pose:
+    """The body as delivered, turned by `attitude`, backed off one step along the push."""
+    return pose_from(attitude, -params.step_m * np.asarray(params.push))
+
+
 def run_chain(job: ChainJob) -> ChainResult:
     """Settle the cells of `job` in order (runs in a worker process)."""
     started = time.perf_counter()
@@ -149,6 +157,9 @@ def run_chain(job: ChainJob) -> ChainResult:
                            params.step_m)
         try:
             result = settle(fixed, moving, start, params)
+            if not result.converged:       # the chain drifted: try the cold start once
+                retry = settle(fixed, moving, cold_start(attitude, params), params)
+                result = retry if retry.converged else result
         except (NoContactError, SettleError) as err:
             poses[i] = start
             reasons.append(f'failed: {err}')
@@ -272,8 +283,8 @@ def sweep(config: KneeConfig, executor: Executor,
     spine_jobs = []
     for b, spec in enumerate(config.bodies):
         a0 = config.attitude(spec, flex[f0], var[v0])
-        cold = pose_from(a0, -spec_push(config, b, f0, v0) * config.settle.step_m)
-        spine_jobs.append(job(b, [(f0, v0)], cold, a0))
+        spine_jobs.append(job(b, [(f0, v0)], cold_start(a0, config.params(spec, flex[f0],
+                                                                          var[v0])), a0))
     collect([executor.submit(run_chain, j) for j in spine_jobs])
     side_jobs = []
     for b, spec in enumerate(config.bodies):
@@ -303,8 +314,3 @@ def sweep(config: KneeConfig, executor: Executor,
     return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
                        converged, iterations, checks, time.perf_counter() - started,
                        tuple(failures))
-
-
-def spec_push(config: KneeConfig, body: int, f: int, v: int) -> Floats:
-    """Push direction of body `body` at grid cell (f, v)."""
-    return config.push(config.bodies[body], config.flexion_rad[f], config.varus_rad[v])
