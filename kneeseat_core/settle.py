@@ -38,9 +38,6 @@ dichotomy, contacts = colliding reference triangles with the reference's outward
      (slides, rotations about Δ and their combinations, at several scales) must all fail
      to gain more than the resolution along Δ; a probe that gains restarts the loop.
   D6 honest ends: "converged" only after D5; otherwise the iteration cap is reported.
-  D7 spin centred: at the first verified rest, the spin about the push is moved to the
-     middle of the band over which it costs less than the resolution in depth (then D5
-     runs again), so the answer does not depend on the side the search came from.
 """
 from __future__ import annotations
 
@@ -475,7 +472,6 @@ class _DefaultSearch:
         blocked = Contacts.empty()
         last_blocked: Floats | None = None
         refine_dir: Floats | None = None     # last direction of a D1' (mean-normal) move
-        centred = False                      # D7 done once
 
         def moved(base: Pose, x: Floats) -> Pose:
             """Slide by x[0] e1 + x[1] e2 and turn by x[2] / arm about the centre axis."""
@@ -537,9 +533,6 @@ class _DefaultSearch:
                     blocked = Contacts.empty()
                     continue
                 probe = self._probe(pose, moved, finest, tol, grads)
-                if probe is None and not centred:
-                    centred = True
-                    probe = self._centre_spin(pose, moved, rot_res * arm, tol)
                 if probe is None:
                     return s._result(pose, True, 'rest: no slide, rotation about the push '
                                      'axis or combination gains more than the resolution '
@@ -617,45 +610,6 @@ class _DefaultSearch:
                         continue
                     return b[0], s._contacts(b[1])
         return None
-
-
-    def _centre_spin(self, pose: Pose, moved, arc_res: float, tol: float
-                     ) -> tuple[Pose, Contacts] | None:
-        """D7: centre the spin about the push inside the band where it costs no depth.
-
-        At rest the spin is often determined only to a band (the depth changes by less
-        than the resolution across it); where the search stops inside the band depends on
-        where it started. Turn both ways (arc at the farthest vertex, slides fixed) until
-        the body, backed off by the resolution, collides; rest at the band's middle.
-        Bands wider than the rotation step's span on either side are left alone (the spin
-        is then undetermined, e.g. a sphere). Returns the re-dropped pose, or None when
-        the spin is already centred within the rotation resolution.
-        """
-        s = self.s
-        back = _translated(pose, -2.0 * tol * s.push)
-        limit = 64.0 * arc_res
-
-        def free(arc: float) -> bool:
-            return not s.pair.collides(moved(back, np.array([0.0, 0.0, arc])))
-
-        edges = []
-        for sign in (1.0, -1.0):
-            lo, hi = 0.0, arc_res
-            while free(sign * hi):
-                lo, hi = hi, 2.0 * hi
-                if hi > limit:
-                    return None
-            while hi - lo > arc_res:
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if free(sign * mid) else (lo, mid)
-            edges.append(sign * lo)
-        middle = 0.5 * (edges[0] + edges[1])
-        if abs(middle) <= arc_res:
-            return None
-        b = s._drop(moved(back, np.array([0.0, 0.0, middle])), tol)
-        if b is None:
-            return None
-        return b[0], s._contacts(b[1])
 
 
 _LOST_CONTACT = ('lost contact: the body slid off the edge of the fixed body without finding '
