@@ -27,7 +27,6 @@ from sensor_msgs.msg import JointState
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.typed import Floats
-
 from .recorder import BagRecorder, RecorderError
 from .replay import PUBLISHER_QOS
 

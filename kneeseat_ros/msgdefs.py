@@ -21,9 +21,9 @@ from __future__ import annotations
 import functools
 import importlib
 import json
+from pathlib import Path
 import re
 import struct
-from pathlib import Path
 from typing import Any
 
 from ament_index_python.packages import get_package_share_directory, PackageNotFoundError

@@ -19,12 +19,12 @@ into a new, complete bag.
 from __future__ import annotations
 
 import argparse
-import re
-import sys
-import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+import re
+import sys
+import threading
 from typing import Any, BinaryIO
 
 from mcap.exceptions import McapError
@@ -35,7 +35,6 @@ from rclpy.qos import QoSProfile
 import yaml
 
 from kneeseat_core.errors import KneeseatError
-
 from .msgdefs import message_definition, MessageTypeError, serialize, type_hash
 
 __all__ = ['RecorderError', 'BagRecorder', 'TopicSpec', 'RecoveryReport', 'qos_to_dicts',

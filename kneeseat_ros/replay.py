@@ -33,7 +33,6 @@ from rclpy.utilities import remove_ros_args
 import yaml
 
 from kneeseat_core.errors import KneeseatError
-
 from .msgdefs import message_class
 
 __all__ = ['BagError', 'BagMessage', 'PUBLISHER_QOS', 'DEFAULT_TOPICS', 'bag_files',

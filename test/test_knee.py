@@ -253,10 +253,10 @@ def test_mid_cells_stay_within_the_measured_bounds(midcells: list[MidCell]) -> N
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
-    'known: within 2 degrees of varus 0 the tibia\'s medio-lateral shift is steep and '
+    'known: within 2 degrees of varus 0 the medio-lateral shift is steep and '
     'non-linear (up to 2.7 mm per degree), so bilinear interpolation misses a direct '
     'settle there by 0.65 mm / 0.64 deg; and where a spin is neutral within the resolution '
-    '(patella, deep flexion) a settle keeps its start\'s spin, 0.59 deg from the blend; '
+    '(patella, deep flexion) a settle keeps the spin it started with, 0.59 deg from the blend; '
     'see docs/tables.md'))
 def test_every_mid_cell_matches_a_direct_settle(midcells: list[MidCell]) -> None:
     print(f'mid-cells: worst {max(m.position_mm for m in midcells):.3f} mm, '
