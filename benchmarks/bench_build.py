@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
-import platform
 import subprocess
 import sys
 import tempfile
@@ -27,26 +26,11 @@ import time
 import numpy as np
 
 from kneeseat_core.table import read_table
+from machine import describe_machine, load_average
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / 'shared' / 'data' / 'tka_dm'
 TARGET_TKA_S = 60.0
-
-
-def cpu_model() -> str:
-    """The CPU model name from /proc/cpuinfo, or the platform's guess."""
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                return line.split(':', 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def load_average() -> str:
-    """The 1, 5 and 15 minute load averages."""
-    return ', '.join(f'{v:.2f}' for v in os.getloadavg())
 
 
 def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> dict:
@@ -103,8 +87,7 @@ def main() -> int:
     if 'tka' in knees and not (args.data / 'femoral_component.stl').is_file():
         print(f'skipping the total knee: no meshes in {args.data}', file=sys.stderr)
         knees.remove('tka')
-    print(f'machine: {platform.platform()}; {cpu_model()}; {os.cpu_count()} CPUs; '
-          f'Python {platform.python_version()}; load average {load_average()}')
+    print(describe_machine())
     rows = []
     with tempfile.TemporaryDirectory(prefix='bench_build.') as tmp:
         for knee in knees:

@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import argparse
 from concurrent.futures import Executor, Future
-import os
 from pathlib import Path
-import platform
 import statistics
 import sys
 import tempfile
@@ -37,6 +35,7 @@ from kneeseat_core.build import materialise_default_knee
 from kneeseat_core.cluster import dask_executor
 from kneeseat_core.knee import KneeConfig, load_config
 from kneeseat_core.sweep import process_executor, sweep, SweepResult
+from machine import describe_machine
 
 
 class TimingExecutor(Executor):
@@ -57,20 +56,9 @@ class TimingExecutor(Executor):
 
 
 def machine() -> str:
-    """CPU model, cores usable, load, Python and library versions."""
+    """The machine line plus the library versions this benchmark depends on."""
     import dask
-    model = platform.processor() or 'unknown CPU'
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                model = line.split(':', 1)[1].strip()
-                break
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else os.cpu_count()
-    load = ', '.join(f'{x:.2f}' for x in os.getloadavg())
-    return (f'{platform.node()}: {model}, {cores} usable cores, load {load}; '
-            f'Python {sys.version.split()[0]}, numpy {np.__version__}, dask {dask.__version__}')
+    return f'{describe_machine()}, numpy {np.__version__}, dask {dask.__version__}'
 
 
 def one_run(config: KneeConfig, executor: Executor,

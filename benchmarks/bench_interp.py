@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
 import statistics
 import sys
 import time
@@ -21,6 +19,7 @@ import numpy as np
 
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.table import PoseTable
+from machine import describe_machine
 
 
 def knee_table(seed: int = 0) -> PoseTable:
@@ -104,8 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--calls', type=int, default=20000)
     parser.add_argument('--no-numpy', action='store_true', help='skip the numpy comparison')
     args = parser.parse_args(argv)
-    print(f'machine: {platform.platform()}, {platform.processor() or platform.machine()}, '
-          f'{os.cpu_count()} CPUs, Python {platform.python_version()}, numpy {np.__version__}')
+    print(f'{describe_machine()}, numpy {np.__version__}')
     table = knee_table()
     rng = np.random.default_rng(1)
     queries = list(zip(rng.uniform(table.flexion_rad[0], table.flexion_rad[-1],

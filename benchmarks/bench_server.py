@@ -21,7 +21,6 @@ import argparse
 import json
 import os
 from pathlib import Path
-import platform
 import signal
 import struct
 import subprocess
@@ -32,26 +31,12 @@ import time
 from typing import Any
 
 import numpy as np
+from machine import describe_machine
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'test'))   # conftest: synthetic_table, ros_env
 
 BODIES = ('tibia', 'patella')
-
-
-def machine() -> str:
-    """One line describing the machine: platform, cpus, model, load."""
-    model = 'unknown'
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                model = line.split(':', 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = ' '.join(f'{x:.2f}' for x in os.getloadavg())
-    return (f'{platform.platform()}, python {platform.python_version()}, {os.cpu_count()} '
-            f'cpus ({model}), load avg {load}')
 
 
 def cpu_seconds(pid: int) -> float:
@@ -154,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     from kneeseat_ros.conversions import AttitudeDecoder, angles_from_pose_stamped
     from kneeseat_ros.conversions import pose_stamped_for_attitude, stamp_from_ns
 
-    print(f'machine: {machine()}')
+    print(describe_machine())
     print(f'ROS_DOMAIN_ID {domain_id}, RMW {os.environ.get("RMW_IMPLEMENTATION", "default")}')
     tmp = Path(tempfile.mkdtemp(prefix='bench_server_'))
     table_path = tmp / 'knee.npz'

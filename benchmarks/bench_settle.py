@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 from pathlib import Path
-import platform
 import statistics
 import sys
 import time
@@ -27,28 +25,11 @@ from kneeseat_core.collision import RigidBody
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.meshes import load_mesh
 from kneeseat_core.settle import settle, SettleParams, SettleResult
+from machine import describe_machine
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'tka_dm'
 PUSH = (0.0, 1.0, 0.0)
 TARGET_MS = 50.0
-
-
-def cpu_model() -> str:
-    """The CPU model name from /proc/cpuinfo, or the platform's guess."""
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                return line.split(':', 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def machine() -> str:
-    load = ', '.join(f'{v:.2f}' for v in os.getloadavg()) if hasattr(os, 'getloadavg') \
-        else 'n/a'
-    return (f'machine: {platform.platform()}; {cpu_model()}; {os.cpu_count()} CPUs; '
-            f'load average {load}; Python {platform.python_version()}, numpy {np.__version__}')
 
 
 def start_pose(insert: RigidBody) -> np.ndarray:
@@ -112,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f'bench_settle: no femoral_component.stl in {args.data}; pass --data pointing '
               'at the tka_dm folder', file=sys.stderr)
         return 2
-    print(machine())
+    print(f'{describe_machine()}, numpy {np.__version__}')
     femoral = RigidBody.from_mesh(load_mesh(args.data / 'femoral_component.stl'))
     insert = RigidBody.from_mesh(load_mesh(args.data / 'tibial_insert.stl'))
     print(f'meshes: femoral component {len(femoral.mesh.faces)} triangles (fixed), tibial '
