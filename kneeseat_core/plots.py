@@ -43,7 +43,7 @@ from .typed import Floats
 
 __all__ = ['DPI', 'PLOT_PANEL_IN', 'PLOT_EXTRA_IN', 'RENDER_PANEL_IN', 'RENDER_EXTRA_IN',
            'RENDER_MAX_FACES', 'MARKER_RGB', 'PNG_KEY_NONCONVERGED', 'plot_table',
-           'render_table']
+           'render_table', 'write_png']
 
 log = logging.getLogger(__name__)
 
@@ -152,8 +152,8 @@ def plot_table(table: PoseTable, out: Path, *, varus_deg: Sequence[float] | None
     fig.suptitle(title if title is not None else _default_title(table))
     log.info('plot of %s: %d bodies, %d varus columns, %d non-converged points marked',
              _table_name(table), n_bodies, len(columns), marked_total)
-    return _write_png(fig, out, {PNG_KEY_NONCONVERGED: str(marked_total),
-                                 PNG_KEY_TABLE: _table_name(table)})
+    return write_png(fig, out, {PNG_KEY_NONCONVERGED: str(marked_total),
+                                PNG_KEY_TABLE: _table_name(table)})
 
 
 def render_table(table: PoseTable, meshes: Mapping[str, trimesh.Trimesh], out: Path, *,
@@ -245,8 +245,8 @@ def render_table(table: PoseTable, meshes: Mapping[str, trimesh.Trimesh], out: P
                for name, c in zip(names, colours)]
     fig.legend(handles=handles, loc='outside lower center', ncol=len(handles))
     fig.suptitle(f'{_table_name(table)}: {view} view, varus {grid_varus_deg[v_col]:.1f}°')
-    path = _write_png(fig, out, {PNG_KEY_NONCONVERGED: str(stale_total),
-                                 PNG_KEY_TABLE: _table_name(table)})
+    path = write_png(fig, out, {PNG_KEY_NONCONVERGED: str(stale_total),
+                                PNG_KEY_TABLE: _table_name(table)})
     log.info('render of %s: %d panels, %s view, %.2f s', _table_name(table), n, view,
              time.perf_counter() - started)
     return path
@@ -261,7 +261,7 @@ def _checked_out(out: Path) -> Path:
     return path
 
 
-def _write_png(fig: Figure, out: Path, text: dict[str, str]) -> Path:
+def write_png(fig: Figure, out: Path, text: dict[str, str] | None = None) -> Path:
     """Save `fig` to `out` atomically (temp file in the same directory, then rename).
 
     Raises:
@@ -273,7 +273,7 @@ def _write_png(fig: Figure, out: Path, text: dict[str, str]) -> Path:
         fd, tmp = tempfile.mkstemp(prefix=f'.{out.name}.', suffix='.tmp', dir=out.parent)
         with os.fdopen(fd, 'wb') as stream:
             fig.savefig(stream, format='png', dpi=DPI,
-                        metadata={'Software': 'kneeseat', **text})
+                        metadata={'Software': 'kneeseat', **(text or {})})
             stream.flush()
             os.fsync(stream.fileno())
         os.chmod(tmp, 0o644)

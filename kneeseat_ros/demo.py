@@ -39,7 +39,6 @@ from pathlib import Path
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from typing import Any, IO
 
@@ -53,6 +52,7 @@ from kneeseat_core.build import build_table, executor_for, materialise_default_k
 from kneeseat_core.errors import KneeseatError, MeshError, TableError
 from kneeseat_core.geometry import matrix_from_quat
 from kneeseat_core.knee import KneeConfig, load_config
+from kneeseat_core.plots import write_png
 from kneeseat_core.sweep import default_workers
 from kneeseat_core.table import PoseTable, read_table
 from kneeseat_core.typed import Floats
@@ -436,7 +436,7 @@ def plot_session(session: SessionStats, table: PoseTable, out: Path) -> Path:
                  f'(input varus {np.degrees(varus_in).min():.1f}..'
                  f'{np.degrees(varus_in).max():.1f} deg), table {table.metadata.get("name", "")} '
                  f'{len(table.flexion_rad)} x {len(table.varus_rad)}')
-    return _write_png(fig, Path(out))
+    return write_png(fig, Path(out))
 
 
 def _min_span(ax: Any, values: Floats, span: float) -> None:
@@ -445,25 +445,6 @@ def _min_span(ax: Any, values: Floats, span: float) -> None:
     if hi - lo < span:
         mid = 0.5 * (lo + hi)
         ax.set_ylim(mid - 0.5 * span, mid + 0.5 * span)
-
-
-def _write_png(fig: Figure, out: Path) -> Path:
-    tmp: str | None = None
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f'.{out.name}.', suffix='.tmp', dir=out.parent)
-        with os.fdopen(fd, 'wb') as stream:
-            fig.savefig(stream, format='png', dpi=PLOT_DPI)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out)
-        tmp = None
-    except OSError as err:
-        raise DemoError(f'cannot write the session plot {out}: {err.strerror or err}; '
-                        'choose a writable --out directory') from None
-    finally:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
-    return out
 
 
 # ---------------------------------------------------------------------------- driver
