@@ -55,7 +55,7 @@ from .errors import NoContactError, SettleError
 from .geometry import rotation_about, TOL, unit
 from .typed import Floats, Pose
 
-__all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'settle', 'settle_bodies']
+__all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'settle']
 
 log = logging.getLogger(__name__)
 
@@ -130,12 +130,12 @@ class SettleResult:
     collision_checks: int
     contacts: Contacts          # final contacts
     elapsed_s: float
-    fcl_s: float                # share of elapsed spent inside python-fcl
+    fcl_s: float                # part of elapsed_s spent inside python-fcl (s)
     backed_out_m: float = 0.0   # distance the start was backed out along -Δ
 
 
-def settle_bodies(fixed: RigidBody, moving: RigidBody, start: Pose,
-                  params: SettleParams) -> SettleResult:
+def settle(fixed: RigidBody, moving: RigidBody, start: Pose,
+           params: SettleParams) -> SettleResult:
     """Push `moving` along `params.push` until it rests on `fixed`.
 
     Args:
@@ -151,12 +151,6 @@ def settle_bodies(fixed: RigidBody, moving: RigidBody, start: Pose,
     """
     params.check()
     return _Settler(CollisionPair(fixed, moving), start, params).run()
-
-
-def settle(fixed: RigidBody, moving: RigidBody, start: Pose,
-           params: SettleParams) -> SettleResult:
-    """Alias of `settle_bodies` (the verb the CLI and sweep use)."""
-    return settle_bodies(fixed, moving, start, params)
 
 
 def _translated(pose: Pose, v: Floats) -> Pose:
