@@ -19,7 +19,8 @@ Topics (DESIGN.md "ROS 2 node"; rename them by remapping, never by parameter):
 
 QoS: inputs use `qos_profile_sensor_data` (best effort, volatile) with keep last 50 instead
 of 5 (5 ms at 1 kHz is shorter than a scheduling hiccup), which matches both reliable and
-best-effort publishers; outputs are reliable, keep last 10, and their
+best-effort publishers; outputs are reliable, keep last 100 (a reliable writer overwrites
+unacknowledged answers beyond its depth: 10 would be 10 ms at 1 kHz), and their
 policies can be overridden through the standard `qos_overrides.*` parameters.
 
 Parameters are read once at start (all but `table` are read-only); bad values stop the
@@ -74,7 +75,7 @@ DRAIN_MAX = 100
 # serve(): the executor (timers, services, parameters) runs at most this often while the
 # inputs are waited on directly; it bounds the timer and service jitter (s).
 HOUSEKEEPING_S = 0.005
-OUTPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+OUTPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                         reliability=QoSReliabilityPolicy.RELIABLE,
                         durability=QoSDurabilityPolicy.VOLATILE)
 STATUS_NAME = 'kneeseat table_server'
@@ -238,7 +239,7 @@ class TableServer(Node):
             f'{self._out_of_range}; in {self._pose_sub.topic_name}, '
             f'{self._joint_sub.topic_name} (sensor data QoS: best effort, depth '
             f'{INPUT_QOS.depth}); out '
-            f'{[p.topic_name for p in self._body_pubs]} (reliable, depth 10); recording '
+            f'{[p.topic_name for p in self._body_pubs]} (reliable, depth 100); recording '
             f'{self._recorder_dir if self._recorder is not None else "off"}')
 
     # ------------------------------------------------------------------ setup
