@@ -56,6 +56,7 @@ from kneeseat_core.plots import write_png
 from kneeseat_core.sweep import default_workers
 from kneeseat_core.table import PoseTable, read_table
 from kneeseat_core.typed import Floats
+from kneeseat_ros.conversions import stamp_ns
 
 __all__ = ['DemoError', 'DEFAULT_OUT', 'DEFAULT_STEP_DEG', 'PLOT_NAME', 'PLOT_SIZE_PX',
            'SessionStats', 'prepare_table', 'demo_bag', 'read_session', 'plot_session',
@@ -303,10 +304,6 @@ class SessionStats:
         return float(np.percentile(self.latency_ns, q)) * 1e-6
 
 
-def _stamp(msg: Any) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-
-
 def read_session(bag: Path, bodies: Sequence[str]) -> SessionStats:
     """Read a session bag written by table_server (mcap reader, mcap_ros2 decoder).
 
@@ -333,11 +330,11 @@ def read_session(bag: Path, bodies: Sequence[str]) -> SessionStats:
                 topic = channel.topic
                 if topic == POSE_TOPIC:
                     o = msg.pose.orientation
-                    inputs[_stamp(msg)] = (t, (o.x, o.y, o.z, o.w))
+                    inputs[stamp_ns(msg.header.stamp)] = (t, (o.x, o.y, o.z, o.w))
                 elif topic in out_topics:
                     n_out += 1
                     p, o = msg.pose.position, msg.pose.orientation
-                    outputs.setdefault(_stamp(msg), {})[out_topics[topic]] = (
+                    outputs.setdefault(stamp_ns(msg.header.stamp), {})[out_topics[topic]] = (
                         t, [p.x, p.y, p.z], [o.x, o.y, o.z, o.w])
                 elif topic == DIAGNOSTICS_TOPIC:
                     n_diag += 1

@@ -19,14 +19,12 @@ import math
 from pathlib import Path
 import sys
 
-from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped
 import numpy as np
-from sensor_msgs.msg import JointState
 
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.typed import Floats
+from .conversions import joint_state, pose_stamped, stamp_from_ns
 from .recorder import BagRecorder, RecorderError
 from .replay import PUBLISHER_QOS
 
@@ -36,7 +34,6 @@ __all__ = ['TrajectoryError', 'AngleTrack', 'sweep', 'gait', 'read_csv', 'parse_
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000   # fixed epoch: 2023-11-14T22:13:20Z
 DEFAULT_AXES = '0,0,1/1,0,0/0,1,0'                  # flexion / varus / long (TKA frame)
 CSV_COLUMNS = ('time_s', 'flexion_deg', 'varus_deg')
-JOINT_NAMES = ('knee_flexion', 'knee_varus')
 _VECTOR_OPTIONS = ('--axes',)
 
 
@@ -156,10 +153,6 @@ def parse_axes(text: str) -> KneeAxes:
         raise TrajectoryError(f'--axes {text!r}: {err}') from None
 
 
-def _stamp(ns: int) -> Time:
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
 def write_angle_bag(directory: Path, track: AngleTrack, axes: KneeAxes, *,
                     frame_id: str = 'femur', start_ns: int = DEFAULT_START_NS,
                     topic: str = '/knee/pose', joint_states: bool = False,
@@ -185,19 +178,13 @@ def write_angle_bag(directory: Path, track: AngleTrack, axes: KneeAxes, *,
             recorder.add_topic('/knee/joint_states', 'sensor_msgs/msg/JointState',
                                PUBLISHER_QOS)
         for i, ns in enumerate(int(s) for s in stamps):
-            msg = PoseStamped()
-            msg.header.stamp = _stamp(ns)
-            msg.header.frame_id = frame_id
-            q = quats[i]
-            msg.pose.orientation.x, msg.pose.orientation.y = float(q[0]), float(q[1])
-            msg.pose.orientation.z, msg.pose.orientation.w = float(q[2]), float(q[3])
-            recorder.write(topic, msg, ns, ns)
+            stamp = stamp_from_ns(ns)
+            recorder.write(topic, pose_stamped((0.0, 0.0, 0.0), quats[i], stamp, frame_id),
+                           ns, ns)
             if joint_states:
-                js = JointState(name=list(JOINT_NAMES),
-                                position=[float(track.flexion_rad[i]),
-                                          float(track.varus_rad[i])])
-                js.header.stamp = _stamp(ns)
-                recorder.write('/knee/joint_states', js, ns, ns)
+                recorder.write('/knee/joint_states',
+                               joint_state(track.flexion_rad[i], track.varus_rad[i], stamp),
+                               ns, ns)
     if recorder.error is not None:
         raise RecorderError(recorder.error)
     return recorder.message_count
