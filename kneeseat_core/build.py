@@ -18,7 +18,7 @@ from tqdm import tqdm
 from .errors import ConfigError
 from .knee import grid_values, KneeConfig, load_config
 from .sweep import default_workers, process_executor, sweep, SweepResult
-from .table import file_sha256, PoseTable, write_table
+from .table import PoseTable, write_table
 
 __all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
            'make_table', 'register_commands', 'executor_for']
@@ -67,9 +67,11 @@ def executor_for(workers: int, scheduler: str | None) -> tuple[Executor, Callabl
 
 def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
     """Package a sweep result and its provenance as a `PoseTable`."""
+    hashes = iter(result.mesh_sha256)   # taken by the sweep before it settled anything
+
     def body_meta(spec: Any) -> dict[str, Any]:
         return {'name': spec.name, 'frame': spec.frame, 'mesh': str(spec.mesh),
-                'mesh_sha256': file_sha256(spec.mesh),
+                'mesh_sha256': next(hashes),
                 'display_mesh': None if spec.display_mesh is None else str(spec.display_mesh)}
 
     settle = config.settle

@@ -185,6 +185,7 @@ class SweepResult:
     iterations: Floats          # (B, F, V) int
     collision_checks: int
     wall_s: float
+    mesh_sha256: tuple[str, ...]    # hex, of the meshes swept: reference then bodies
     failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
 
     @property
@@ -313,4 +314,4 @@ def sweep(config: KneeConfig, executor: Executor,
                 progress(nf * (nv - 1))
     return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
                        converged, iterations, checks, time.perf_counter() - started,
-                       tuple(failures))
+                       scene.mesh_sha256, tuple(failures))
