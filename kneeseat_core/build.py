@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 from concurrent.futures import Executor
 from contextlib import contextmanager
+from dataclasses import asdict
 from datetime import datetime, timezone
 from importlib import resources
 import logging
@@ -74,7 +75,6 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
                 'mesh_sha256': next(hashes),
                 'display_mesh': None if spec.display_mesh is None else str(spec.display_mesh)}
 
-    settle = config.settle
     metadata = {
         'name': config.name,
         'reference': body_meta(config.reference),
@@ -82,12 +82,9 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
         'axes': {'flexion': config.axes.flexion.tolist(), 'varus': config.axes.varus.tolist(),
                  'long': config.axes.long.tolist()},
         'config': config.metadata(),
-        'settle': {'method': settle.method, 'step_m': settle.step_m,
-                   'resolution_m': settle.resolution_m,
-                   'rotation_step_rad': settle.rotation_step_rad,
-                   'rotation_resolution_rad': settle.rotation_resolution_rad,
-                   'max_iterations': settle.max_iterations,
-                   'max_slide_m': settle.max_slide_m},
+        # push and locked slide are per body and per cell, not settle parameters
+        'settle': {k: v for k, v in asdict(config.settle).items()
+                   if k not in ('push', 'locked_slide')},
         'built': datetime.now(timezone.utc).isoformat(timespec='seconds'),
         'summary': {'cells': result.cells, 'converged': int(result.converged.sum()),
                     'wall_s': round(result.wall_s, 3),
