@@ -15,7 +15,7 @@ total knee: with any fixed push it leaves the component within 10 degrees of fle
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 import math
 from pathlib import Path
 from typing import Any
@@ -71,19 +71,12 @@ class KneeConfig:
 
     def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
         """Settle parameters for `body` at a grid cell."""
-        push = self.push(body, flexion_rad, varus_rad)
-        lock = None
-        if body.locked_slide is not None:
-            turned = self.attitude(body, flexion_rad, varus_rad) @ np.asarray(body.locked_slide)
-            lock = (float(turned[0]), float(turned[1]), float(turned[2]))
-        return SettleParams(push=(float(push[0]), float(push[1]), float(push[2])),
-                            locked_slide=lock,
-                            step_m=self.settle.step_m, resolution_m=self.settle.resolution_m,
-                            rotation_step_rad=self.settle.rotation_step_rad,
-                            rotation_resolution_rad=self.settle.rotation_resolution_rad,
-                            max_iterations=self.settle.max_iterations,
-                            max_slide_m=self.settle.max_slide_m,
-                            method=self.settle.method)
+        turn = self.attitude(body, flexion_rad, varus_rad)
+        push = turn @ np.asarray(body.push)
+        lock = None if body.locked_slide is None else turn @ np.asarray(body.locked_slide)
+        return replace(self.settle, push=(float(push[0]), float(push[1]), float(push[2])),
+                       locked_slide=None if lock is None else
+                       (float(lock[0]), float(lock[1]), float(lock[2])))
 
     def metadata(self) -> dict[str, Any]:
         """The config as plain JSON-able data, with resolved absolute mesh paths."""
