@@ -1,14 +1,22 @@
 """The range-of-motion sweep: settle every grid attitude, warm-started, in parallel chains.
 
 Order (the patent's warm start, made parallel):
-1. a *spine* per moving body: the varus values at the flexion nearest 0, settled outward
-   from the varus nearest 0 (each cell starts from its neighbour's equilibrium);
-2. a *column* per (body, varus value): the flexion values settled outward from the spine
+1. the *centre* cell of each moving body (flexion and varus nearest 0) from its cold start;
+2. a *spine* per body: the flexion values at the varus nearest 0, settled outward from the
+   centre, each cell from its neighbour's equilibrium;
+3. a *rib* per (body, flexion value, side): the varus values settled outward from the spine
    cell, each from its neighbour's equilibrium.
-Spines run in parallel across bodies, then columns in parallel across bodies and varus
-values, on any `concurrent.futures.Executor` (a process pool by default; Dask's executor
+Each phase runs its chains in parallel (across bodies, then across flexion values and
+sides) on any `concurrent.futures.Executor` (a process pool by default; Dask's executor
 plugs in the same way). A body whose attitude ignores varus (`varus_fraction: 0`, e.g. a
-patella) is settled on one column and copied across varus.
+patella) is settled on its spine only and copied across varus.
+
+Why ribs along varus rather than columns along flexion: where a body rests on one contact
+only (a tibia tilted by a commanded varus bears on one condyle), its spin about the push
+is free - no move gains depth - and a settle keeps the spin it starts with. Ribs carry the
+spin that the spine's two-contact rests determine at each flexion out to every varus
+value, so varus neighbours agree; independent flexion columns each kept their own spin
+and disagreed by up to 2.6 deg (docs/tables.md).
 
 A warm start keeps the neighbour's spin about the push and its position relative to the
 joint (both turned by the change of attitude), backed off one step along the push. A cell
@@ -280,31 +288,32 @@ def sweep(config: KneeConfig, executor: Executor,
         return done
 
     varus_free = [abs(b.varus_fraction) < 1e-12 for b in config.bodies]
-    # 1. spines: flexion f0; varus outward from v0 (the centre cell starts cold)
-    spine_jobs = []
+    # 1. centre cells, cold
+    centre_jobs = []
     for b, spec in enumerate(config.bodies):
         a0 = config.attitude(spec, flex[f0], var[v0])
-        spine_jobs.append(job(b, [(f0, v0)], cold_start(a0, config.params(spec, flex[f0],
-                                                                          var[v0])), a0))
+        centre_jobs.append(job(b, [(f0, v0)], cold_start(a0, config.params(spec, flex[f0],
+                                                                           var[v0])), a0))
+    collect([executor.submit(run_chain, j) for j in centre_jobs])
+    # 2. spines: varus v0, flexion outward from f0
+    spine_jobs = []
+    for b, spec in enumerate(config.bodies):
+        for side in _outward(nf, f0):
+            if side:
+                spine_jobs.append(job(b, [(f, v0) for f in side], poses[b, f0, v0],
+                                      config.attitude(spec, flex[f0], var[v0])))
     collect([executor.submit(run_chain, j) for j in spine_jobs])
-    side_jobs = []
+    # 3. ribs: every flexion value of a body that feels varus, varus outward from the spine
+    rib_jobs = []
     for b, spec in enumerate(config.bodies):
         if varus_free[b]:
             continue
-        for side in _outward(nv, v0):
-            if side:
-                side_jobs.append(job(b, [(f0, v) for v in side], poses[b, f0, v0],
-                                     config.attitude(spec, flex[f0], var[v0])))
-    collect([executor.submit(run_chain, j) for j in side_jobs])
-    # 2. columns: every varus value (or only v0 for a varus-free body), flexion outward
-    column_jobs = []
-    for b, spec in enumerate(config.bodies):
-        for v in ([v0] if varus_free[b] else range(nv)):
-            for side in _outward(nf, f0):
+        for f in range(nf):
+            for side in _outward(nv, v0):
                 if side:
-                    column_jobs.append(job(b, [(f, v) for f in side], poses[b, f0, v],
-                                           config.attitude(spec, flex[f0], var[v])))
-    collect([executor.submit(run_chain, j) for j in column_jobs])
+                    rib_jobs.append(job(b, [(f, v) for v in side], poses[b, f, v0],
+                                        config.attitude(spec, flex[f], var[v0])))
+    collect([executor.submit(run_chain, j) for j in rib_jobs])
     for b in range(nb):
         if varus_free[b]:
             poses[b] = poses[b, :, v0:v0 + 1]

@@ -1,7 +1,7 @@
 """Sweeps on Dask distributed (kneeseat_core/cluster.py) against the process pool.
 
 Real LocalClusters (worker processes, loopback only, no dashboard), the embedded default knee
-on a small grid (flexion 0..-90 by 10, varus -10..10 by 5: 100 cells, 10 chains). The slow
+on a small grid (flexion 0..-90 by 10, varus -10..10 by 5: 100 cells, 24 chains). The slow
 tests build the knee on the process pool once (a batch of two configs) and compare.
 """
 from __future__ import annotations
@@ -33,8 +33,8 @@ from kneeseat_core.table import file_sha256, PoseTable, read_table
 FLEXION = '0,-90,10'
 VARUS = '-10,10,5'
 GRID = {'flexion_deg': [0, -90, 10], 'varus_deg': [-10, 10, 5]}
-CELLS_BEFORE_COLUMNS = 6      # spines: 2 centre cells + 4 tibia varus cells
-CHAINS = 10                   # 2 spine centres + 2 tibia varus sides + 5 tibia + 1 patella
+CELLS_BEFORE_RIBS = 20        # 2 centre cells + 9 + 9 flexion spine cells
+CHAINS = 24                   # 2 centres + 2 flexion spines + 10 x 2 tibia varus ribs
 MESHES = 3                    # femur, tibia, patella
 DEADLINE_S = 120.0
 
@@ -256,7 +256,7 @@ def test_build_survives_a_killed_worker(small_config: KneeConfig,
     def progress(n: int) -> None:
         nonlocal cells
         cells += n
-        if cells >= CELLS_BEFORE_COLUMNS + 9:      # spines and one column done
+        if cells >= CELLS_BEFORE_RIBS + 2:         # spines and one rib done
             enough.set()
 
     with local_cluster() as running:
