@@ -11,7 +11,8 @@ delivered (rotation about the push is what settling finds, with the translation)
 optional `locked_slide` (a direction at neutral, turned by A) is a slide the body may not
 make: a patella's height along the groove is held by its tendon, not by the push - pushed
 onto the sagittally convex trochlea it would otherwise slide off the flange (tried on the
-total knee: with any fixed push it leaves the component within 10 degrees of flexion).
+total knee: with any fixed push it leaves the component within 10 degrees of flexion). The
+default knee's patella conforms to its trochlea and needs no lock.
 """
 from __future__ import annotations
 

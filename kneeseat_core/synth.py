@@ -15,22 +15,34 @@ bytes every run):
   a core that forms the intercondylar notch, a trochlea (a larger arc anteriorly, with a
   groove) and a shaft stub up to y = 75 mm. The two ends are flat caps.
 - tibia and patella: solids between two height fields over an elliptical footprint (polar
-  grid), joined by a short rim wall. Tibia: a concave medial dish, a flatter lateral dish,
-  an intercondylar eminence (two spines) that sits in the notch, a metaphysis flaring to a
-  shaft stub down to y = -95 mm. Patella: a domed anterior face and a posterior face with a
-  central vertical ridge matching the trochlear groove.
+  grid), joined by a short rim wall. Tibia: a medial and a lateral dish, an intercondylar
+  eminence (two spines) that sits in the notch, a metaphysis flaring to a shaft stub down
+  to y = -95 mm. Patella: a domed anterior face and a posterior face that is the trochlea's
+  anterior surface moved 1.5 mm forward (so a central vertical ridge fills the groove).
 
-Secondary motion (why settling moves more than the push):
+Secondary motion (why settling moves more than the push), and why every rest is sharp:
 - The lateral condyle's sagittal arc is centred 2.25 mm posterior and 2.25 mm distal of
   the flexion axis (the medial one on it). Seen from the tibia, the lateral condyle's lowest
   point therefore moves 4.5 mm anteriorly relative to the medial one between 0 and -90 deg
-  of flexion, and the tibia, whose two dishes follow the two condyles, turns about its long
-  axis: internal rotation grows with flexion (screw-home read the other way: the tibia is
-  externally rotated in extension). Turning about the medial (pivot) dish also shifts the
-  tibia antero-posteriorly.
-- The dishes are 6 mm further apart than the condyles, so the tibia wedges between the two
-  condyles: at the rest pose both condyles touch (each on the inner wall of its dish), and
-  the height change of the offset lateral arc is taken up by a small medio-lateral shift.
+  of flexion. Each dish is a "V" in the sagittal plane (flanks of slope 0.45 medially,
+  0.35 laterally): a condyle bears on both flanks, so the dish holds it antero-posteriorly
+  with a depth change linear in the offset, and with both condyles bearing the tibia must
+  turn about its long axis to follow the lateral one (internal rotation grows with
+  flexion: screw-home read the other way). The lateral dish sits under the lateral
+  condyle at extension.
+- Coronally each dish is a circle 2 mm wider in radius than its condyle, centred 0.6 mm
+  towards the other compartment, so a condyle bears on its dish's outer wall. A
+  medio-lateral shift then lowers one contact and raises the other: it takes up the
+  height difference between the condyles (the lateral arc dips 0.9 mm at mid-flexion, a
+  commanded varus tilts one side up by 0.42 mm per degree) and keeps both condyles
+  bearing over a band of varus. Because the walls face outward, that shift opposes the
+  0.44 mm per degree by which a varus tilt about the knee centre moves the dishes
+  sideways (numbers in docs/tables.md). Outside the band one condyle
+  bears alone, held by its V and its conforming circle, and its spin about the push is
+  free (no move gains depth): the sweep carries the spin from varus 0 (sweep.py).
+- The patella conforms to the trochlea in both planes, so it bears along the groove, its
+  spin about its push is held, and it is free to slide along the groove (it seats where
+  the conforming faces fit).
 
 Dimensions below are millimetres (suffix `_MM`); the meshes are scaled to metres at the end.
 """
@@ -77,8 +89,8 @@ _TROCH_R_MM = 25.0
 _TROCH_Z_MM = -1.0                 # centre of the trochlea's medio-lateral extent
 _TROCH_HALF_WIDTH_MM = 32.0
 _GROOVE_Z_MM = -1.0                # trochlear groove line (z)
-_GROOVE_DEPTH_MM = 5.0
-_GROOVE_WIDTH_MM = 8.0             # gaussian width of the groove
+_GROOVE_DEPTH_MM = 6.0
+_GROOVE_WIDTH_MM = 6.0             # gaussian width of the groove
 _LAT_FACET_RISE_MM = 1.5           # lateral trochlear facet stands higher than the medial
 _SHAFT_TOP_MM = 75.0
 _SHAFT_HALF_AP_MM = 14.0
@@ -88,16 +100,19 @@ _FEMUR_Z_RANGE_MM = (-42.0, 38.0)
 _SMOOTH_MAX_K = 2.0                # 1/mm, sharpness of the blend between femur parts
 
 # ---- tibia (mm) -----------------------------------------------------------------------
-_MED_DISH_MM = (0.0, -28.0, -25.5)   # dish centre x, z and its bottom y
-_LAT_DISH_MM = (0.0, 26.0, -24.95)
-_MED_DISH_R_MM = (30.0, 24.0)        # sagittal, coronal radius (concave)
-_LAT_DISH_R_MM = (40.0, 30.0)        # flatter
-_DISH_DEPTH_MM = 5.0                 # dishes saturate at this depth towards the rim
+_MED_DISH_MM = (0.0, -24.4, -26.7)   # dish centre x, z and its bottom y
+_LAT_DISH_MM = (-2.25, 22.4, -26.0)  # under the lateral condyle at extension
+_MED_DISH_SHAPE = (0.45, 19.0)       # sagittal flank slope, coronal radius (mm)
+_LAT_DISH_SHAPE = (0.35, 17.0)       # shallower flanks
+_SAG_ROUND_MM = 2.0                  # rounding of the sagittal V's crease
+_SAG_CAP_MM = 3.5                    # the V's flanks level off this high
+_DISH_DEPTH_MM = 7.5                 # dishes level off this high (outer side)
+_DISH_INNER_DEPTH_MM = 4.5           # and this high towards the eminence
 _EMINENCE_SPINES_Z_MM = (-5.0, 3.0)
-_EMINENCE_HEIGHT_MM = 7.5            # above the medial dish bottom
+_EMINENCE_HEIGHT_MM = 8.5            # above the medial dish bottom
 _EMINENCE_SIGMA_MM = (7.0, 2.6)      # (x, z) gaussian widths of each spine
 _TIBIA_CENTRE_MM = (1.0, -2.0)       # footprint centre (x, z)
-_TIBIA_SEMI_MM = (25.0, 40.0)        # footprint semi-axes (x, z)
+_TIBIA_SEMI_MM = (25.0, 46.0)        # footprint semi-axes (x, z)
 _TIBIA_RIM_DROP_MM = 2.5             # rounding of the plateau rim
 _TIBIA_RIM_WALL_MM = 7.0             # height of the plateau's side wall
 _TIBIA_SHAFT_END_MM = -95.0
@@ -244,18 +259,41 @@ def _polar_solid(top_r: Floats, bottom_r: Floats, n_ang: int, top_h: HeightField
     return np.vstack(uv_parts), np.concatenate(h_parts), np.concatenate(faces).astype(np.int64)
 
 
+def _circular_rise(u: Floats, radius: float) -> Floats:
+    """Rise (mm) of a concave circular profile of `radius` at offset `u` from its bottom.
+
+    Past 0.9 of the radius the profile continues as its tangent line, so it stays finite
+    and increasing (the dish cap below keeps it from mattering).
+    """
+    limit = 0.9 * radius
+    a = np.minimum(np.abs(u), limit)
+    rise = radius - np.sqrt(radius * radius - a * a)
+    slope = limit / np.sqrt(radius * radius - limit * limit)
+    return rise + slope * (np.abs(u) - a)
+
+
 def _dish(x: Floats, z: Floats, centre: tuple[float, float, float],
-          radii: tuple[float, float]) -> Floats:
-    """Height (mm) of a concave elliptic-paraboloid dish that flattens out towards the rim."""
-    q = ((x - centre[0]) ** 2 / (2.0 * radii[0]) + (z - centre[1]) ** 2 / (2.0 * radii[1]))
-    return centre[2] + _DISH_DEPTH_MM * (1.0 - np.exp(-q / _DISH_DEPTH_MM))
+          shape: tuple[float, float]) -> Floats:
+    """Height (mm) of a concave dish at (x, z) mm: a rounded V sagittally (flank slope
+    `shape[0]`), a circle of radius `shape[1]` coronally, the V capped softly at
+    `_SAG_CAP_MM` and the whole at `_DISH_DEPTH_MM` above its bottom (`_DISH_INNER_DEPTH_MM`
+    on the side facing the other dish, which stays clear of the femur's notch)."""
+    dx = x - centre[0]
+    sagittal = shape[0] * (np.sqrt(dx * dx + _SAG_ROUND_MM ** 2) - _SAG_ROUND_MM)
+    k = _SMOOTH_MAX_K
+    sagittal = _SAG_CAP_MM - np.logaddexp(0.0, k * (_SAG_CAP_MM - sagittal)) / k
+    rise = sagittal + _circular_rise(z - centre[1], shape[1])
+    inner = (z - centre[1]) * centre[1] < 0.0        # the side towards the other dish
+    cap = np.where(inner, _DISH_INNER_DEPTH_MM, _DISH_DEPTH_MM)
+    capped = cap - np.logaddexp(0.0, k * (cap - rise)) / k
+    return centre[2] + capped
 
 
 def tibia_top_mm(x: Floats, z: Floats) -> Floats:
     """Height (mm) of the tibial plateau (before the rim rounding) at (x, z) mm."""
     lateral_share = 1.0 / (1.0 + np.exp(-(z - 0.0) / 2.5))
-    plateau = ((1.0 - lateral_share) * _dish(x, z, _MED_DISH_MM, _MED_DISH_R_MM)
-               + lateral_share * _dish(x, z, _LAT_DISH_MM, _LAT_DISH_R_MM))
+    plateau = ((1.0 - lateral_share) * _dish(x, z, _MED_DISH_MM, _MED_DISH_SHAPE)
+               + lateral_share * _dish(x, z, _LAT_DISH_MM, _LAT_DISH_SHAPE))
     sx, sz = _EMINENCE_SIGMA_MM
     spines = sum(np.exp(-(z - zs) ** 2 / (2 * sz * sz)) for zs in _EMINENCE_SPINES_Z_MM)
     base = _MED_DISH_MM[2] + _EMINENCE_HEIGHT_MM
@@ -291,36 +329,48 @@ def _tibia_mesh_mm() -> tuple[Floats, np.ndarray]:
 
 
 @functools.cache
-def _trochlea_profile_mm() -> tuple[Floats, Floats]:
-    """The femur's anterior-most x (mm) against z over the patella's height range.
+def _trochlea_front_mm() -> tuple[Floats, Floats, Floats]:
+    """The femur's anterior surface over the patella's footprint, as x (mm) on a (z, y) grid.
 
     Returns:
-        (n,) z samples (mm) and (n,) x (mm): for each sagittal slice, the largest x of the
-        femur's boundary between the patella's lowest and highest y.
+        (nz,) z samples, (ny,) y samples (mm) and (nz, ny) x (mm): where each sagittal
+        slice's boundary crosses height y in front of the flexion axis.
     """
     z = np.linspace(_PATELLA_CENTRE_MM[1] - _PATELLA_SEMI_MM[1] - 1.0,
                     _PATELLA_CENTRE_MM[1] + _PATELLA_SEMI_MM[1] + 1.0, 181)
-    phi = np.linspace(-np.pi / 2, np.pi / 2, 721)
+    y = np.linspace(_PATELLA_CENTRE_MM[0] - _PATELLA_SEMI_MM[0],
+                    _PATELLA_CENTRE_MM[0] + _PATELLA_SEMI_MM[0], 161)
+    # Over these directions every slice's boundary rises monotonically through the
+    # patella's height range, so x is a function of y there.
+    phi = np.linspace(np.radians(-45.0), np.radians(75.0), 2001)
     rho = femur_radius_mm(phi[None, :], z[:, None])                # (nz, nphi)
-    x, y = rho * np.cos(phi), rho * np.sin(phi)
-    lo = _PATELLA_CENTRE_MM[0] - _PATELLA_SEMI_MM[0]
-    hi = _PATELLA_CENTRE_MM[0] + _PATELLA_SEMI_MM[0]
-    x = np.where((y >= lo) & (y <= hi), x, -np.inf)
-    return z, x.max(axis=1)
+    xs, ys = rho * np.cos(phi), rho * np.sin(phi)
+    x = np.stack([np.interp(y, ys[k], xs[k]) for k in range(len(z))])
+    return z, y, x
 
 
 def patella_back_mm(y: Floats, z: Floats) -> Floats:
     """x (mm) of the patella's posterior face at (y, z) mm, before the rim rounding.
 
-    It follows the trochlea's anterior-most profile (so its central vertical ridge fills
-    the groove) at `_PATELLA_GAP_MM`, with the ridge kept `_PATELLA_RIDGE_RELIEF_MM`
-    shallower than the groove, so that the patella bears on both facets.
+    It is the trochlea's anterior surface moved `_PATELLA_GAP_MM` forward: conforming in
+    both planes, so its central vertical ridge fills the groove and the contact spreads
+    along the groove, which holds the patella's spin about its push. The ridge is kept
+    `_PATELLA_RIDGE_RELIEF_MM` shallower than the groove, so that the patella bears on
+    both facets.
     """
-    _, z = np.broadcast_arrays(np.asarray(y, dtype=np.float64), np.asarray(z, dtype=np.float64))
-    z_s, x_s = _trochlea_profile_mm()
+    y, z = np.broadcast_arrays(np.asarray(y, dtype=np.float64), np.asarray(z, dtype=np.float64))
+    z_s, y_s, x_s = _trochlea_front_mm()
+    # bilinear interpolation in the (z, y) grid (clamped at its edges)
+    fz = np.interp(z, z_s, np.arange(len(z_s)))
+    fy = np.interp(y, y_s, np.arange(len(y_s)))
+    iz = np.minimum(fz.astype(np.int64), len(z_s) - 2)
+    iy = np.minimum(fy.astype(np.int64), len(y_s) - 2)
+    tz, ty = fz - iz, fy - iy
+    front = ((1 - tz) * ((1 - ty) * x_s[iz, iy] + ty * x_s[iz, iy + 1])
+             + tz * ((1 - ty) * x_s[iz + 1, iy] + ty * x_s[iz + 1, iy + 1]))
     relief = _PATELLA_RIDGE_RELIEF_MM * np.exp(
         -((z - _GROOVE_Z_MM) / (0.8 * _GROOVE_WIDTH_MM)) ** 2)
-    return np.interp(z, z_s, x_s) + _PATELLA_GAP_MM + relief
+    return front + _PATELLA_GAP_MM + relief
 
 
 def _patella_mesh_mm() -> tuple[Floats, np.ndarray]:
