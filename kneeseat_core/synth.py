@@ -30,7 +30,7 @@ Secondary motion (why settling moves more than the push), and why every rest is 
   turn about its long axis to follow the lateral one (internal rotation grows with
   flexion: screw-home read the other way). The lateral dish sits under the lateral
   condyle at extension.
-- Coronally each dish is a circle 2 mm wider in radius than its condyle, centred 0.6 mm
+- Coronally each dish is a circle 1 mm wider in radius than its condyle, centred 0.6 mm
   towards the other compartment, so a condyle bears on its dish's outer wall. A
   medio-lateral shift then lowers one contact and raises the other: it takes up the
   height difference between the condyles (the lateral arc dips 0.9 mm at mid-flexion, a
