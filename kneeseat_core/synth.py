@@ -138,6 +138,11 @@ def _smooth_max(parts: list[Floats], k: float = _SMOOTH_MAX_K) -> Floats:
     return top + np.log(np.exp(k * (stack - top)).sum(axis=0)) / k
 
 
+def _soft_cap(value: Floats, cap: Floats | float, k: float = _SMOOTH_MAX_K) -> Floats:
+    """Smooth minimum of `value` and `cap` (mm): -log(exp(-k value) + exp(-k cap)) / k."""
+    return cap - np.logaddexp(0.0, k * (cap - value)) / k
+
+
 def _smoothstep(t: Floats) -> Floats:
     """C1 step from 0 (t <= 0) to 1 (t >= 1)."""
     t = np.clip(t, 0.0, 1.0)
@@ -279,14 +284,11 @@ def _dish(x: Floats, z: Floats, centre: tuple[float, float, float],
     `_SAG_CAP_MM` and the whole at `_DISH_DEPTH_MM` above its bottom (`_DISH_INNER_DEPTH_MM`
     on the side facing the other dish, which stays clear of the femur's notch)."""
     dx = x - centre[0]
-    sagittal = shape[0] * (np.sqrt(dx * dx + _SAG_ROUND_MM ** 2) - _SAG_ROUND_MM)
-    k = _SMOOTH_MAX_K
-    sagittal = _SAG_CAP_MM - np.logaddexp(0.0, k * (_SAG_CAP_MM - sagittal)) / k
+    sagittal = _soft_cap(shape[0] * (np.sqrt(dx * dx + _SAG_ROUND_MM ** 2) - _SAG_ROUND_MM),
+                         _SAG_CAP_MM)
     rise = sagittal + _circular_rise(z - centre[1], shape[1])
     inner = (z - centre[1]) * centre[1] < 0.0        # the side towards the other dish
-    cap = np.where(inner, _DISH_INNER_DEPTH_MM, _DISH_DEPTH_MM)
-    capped = cap - np.logaddexp(0.0, k * (cap - rise)) / k
-    return centre[2] + capped
+    return centre[2] + _soft_cap(rise, np.where(inner, _DISH_INNER_DEPTH_MM, _DISH_DEPTH_MM))
 
 
 def tibia_top_mm(x: Floats, z: Floats) -> Floats:
