@@ -4,7 +4,8 @@ A `RigidBody` is built once per mesh: an fcl BVH plus, per triangle, the centre 
 outward normal taken as the normalised mean of its three vertex normals (the patent's
 choice). A `CollisionPair` holds the fixed reference and the moving body and answers:
 - `collides(pose)`: boolean, stops at the first overlapping triangle pair (dichotomy);
-- `contacts(pose)`: every overlapping triangle of the reference (contact analysis).
+- `contacts(pose)`: every overlapping triangle of the reference (contact analysis);
+- `contact_points(pose)`: the same triangles with the points where the two surfaces cross.
 Poses are (4, 4) `fixed_from_moving`; the fixed body sits at identity.
 """
 from __future__ import annotations
@@ -37,6 +38,9 @@ class RigidBody:
     bound_centre: Floats  # (3,) m, centre of a sphere enclosing every vertex
     bound_radius: float   # m
     reach: float          # m, farthest vertex from the centroid
+    faces: np.ndarray     # (n, 3) int vertex indices
+    vertex_normals: Floats  # (m, 3) unit
+    adjacency: tuple[np.ndarray, np.ndarray]   # CSR (indptr, indices) of edge neighbours
 
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh) -> RigidBody:
@@ -44,7 +48,7 @@ class RigidBody:
         vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         bvh = fcl.BVHModel()
-        bvh.beginModel(len(vertices), len(faces))
+        bvh.beginModel(len(faces), len(vertices))   # (triangles, vertices)
         bvh.addSubModel(vertices, faces)
         bvh.endModel()
         normals = np.asarray(mesh.vertex_normals)[faces].mean(axis=1)
@@ -57,8 +61,14 @@ class RigidBody:
         radius = float(np.sqrt(np.max(np.sum((vertices - centre) ** 2, axis=1))))
         centroid = np.asarray(mesh.centroid, dtype=np.float64)
         reach = float(np.sqrt(np.max(np.sum((vertices - centroid) ** 2, axis=1))))
+        pairs = np.asarray(mesh.face_adjacency, dtype=np.int64).reshape(-1, 2)
+        both = np.concatenate([pairs, pairs[:, ::-1]])
+        order = np.argsort(both[:, 0], kind='stable')
+        indptr = np.searchsorted(both[order, 0], np.arange(len(faces) + 1))
         return cls(mesh, bvh, np.asarray(mesh.triangles_center), normals / lengths,
-                   vertices, centroid, centre, radius, reach)
+                   vertices, centroid, centre, radius, reach, faces,
+                   np.asarray(mesh.vertex_normals, dtype=np.float64),
+                   (indptr, np.ascontiguousarray(both[order, 1])))
 
 
 @dataclass(slots=True, eq=False)
@@ -95,8 +105,19 @@ class CollisionPair:
         fcl reports each contact as (o1, b1, o2, b2); which side is the reference is
         decided by object identity, never by argument order.
         """
+        return np.unique(self.contact_points(pose)[0])
+
+    def contact_points(self, pose: Pose) -> tuple[np.ndarray, Floats]:
+        """Every overlapping pair of triangles at `pose`: the reference triangle (k,) and the
+        point (k, 3) m, fixed frame, where the two triangles cross (python-fcl's contact).
+
+        fcl reports each contact as (o1, b1, o2, b2); which side is the reference is
+        decided by object identity, never by argument order.
+        """
         request = fcl.CollisionRequest(num_max_contacts=_MAX_CONTACTS, enable_contact=True)
         result = self._query(pose, request)
         fixed_geom = self.fixed.bvh
-        ids = [c.b1 if c.o1 is fixed_geom else c.b2 for c in result.contacts]
-        return np.unique(np.asarray(ids, dtype=np.int64))
+        ids = np.fromiter((c.b1 if c.o1 is fixed_geom else c.b2 for c in result.contacts),
+                          dtype=np.int64, count=len(result.contacts))
+        points = np.array([c.pos for c in result.contacts], dtype=np.float64).reshape(-1, 3)
+        return ids, points

@@ -1,0 +1,384 @@
+"""`--method default`: the patent's loop carried to a true rest pose (see kneeseat_core/settle.py).
+
+Rest is a local maximum of the travel s: how far the body goes along the push Δ before it
+touches, as a function of the lateral state (slides across Δ and a spin about an axis
+parallel to Δ). The climb is a steepest ascent of s over that state, in four named steps
+over a small state object (`_Climb`):
+
+- `choose`: the contacts at the current pose are grouped into patches (one mean point
+  and normal each); each patch's depth gradient says how much depth a unit move gains
+  there, and the steepest move that gains at every patch is the minimum-norm point of
+  their convex hull (D1). A norm at or below the slope `SLOPE` means the contacts balance.
+- `move`: a line search along that direction. The move is accepted while it does not
+  lose depth beyond the contact tolerance; its length grows (doubles) while the slope
+  measured at the new pose stays above half the slope at the old one and is cut to the
+  secant estimate of the crest when the slope changes sign (D3), so a shallow slope is
+  followed whatever the length of the climb and however little each step gains.
+  A move that loses depth teaches the contacts that blocked it (D2).
+- `prove`: when the contacts balance (or no move of the finest size is left), probes in
+  26 directions (slides, spins and their combinations) at three scales, from the finest
+  move to 16 times it, each lifted by half the resolution, must all collide; a probe that
+  gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
+- the envelope: the climb may not leave it (D6); where the envelope holds (a config's
+  soft-tissue stand-in), the move is kept inside and a rest on its boundary is
+  reported as constrained.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import itertools
+import math
+
+import numpy as np
+
+from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
+from .typed import Floats, Pose
+
+__all__ = ['run_climb', 'SLOPE']
+
+# Depth gained per metre of lateral motion at or below which the contacts count as balanced.
+SLOPE = 1e-3
+# A patch whose depth gradient is at most this long sits at its own crest (D1b).
+CREST = 2.0 * SLOPE
+# Probe scales, in finest moves (the finest move: one resolution of slide, or a spin
+# whose arc at the farthest vertex is one rotation resolution).
+PROBE_SCALES = (1.0, 4.0, 16.0)
+# The longest single move, in translation steps.
+MAX_MOVE_STEPS = 4.0
+# Before rest is probed, the contact bracket is narrowed to this fraction of the tolerance,
+# so that a patch only near contact (it would balance the hull by itself) drops out.
+FINE = 0.25
+
+_DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)])
+_DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
+
+
+def _min_norm_point(points: Floats, iterations: int = 64) -> Floats:
+    """Minimum-norm point of the convex hull of `points` (k, d), by Frank-Wolfe.
+
+    Stops when the duality gap x.x - min_j p_j.x falls below 1e-4 x.x (the direction is
+    then exact to well under a degree).
+    """
+    x = points[int(np.argmin(np.einsum('ij,ij->i', points, points)))].copy()
+    for _ in range(iterations):
+        dots = points @ x
+        j = int(np.argmin(dots))
+        xx = float(x @ x)
+        if xx - float(dots[j]) <= 1e-4 * xx + 1e-18:
+            break
+        d = points[j] - x
+        dd = float(d @ d)
+        if dd < 1e-30:
+            break
+        t = -float(x @ d) / dd
+        if t <= 1e-12:
+            break
+        x += min(t, 1.0) * d
+    return x
+
+
+@dataclass(slots=True, eq=False)
+class _Climb:
+    """The state of one climb and its four steps."""
+
+    search: Search
+    pose: Pose                 # at contact: free, within `tol` of touching
+    touching: Pose             # `pose` moved along Δ until it touches
+    floor: Contacts            # contact patches at `touching`
+    arm: float                 # m of arc per radian of spin (the farthest vertex)
+    tol: float                 # exact-contact tolerance along Δ (m)
+    finest: float              # the finest move (m of slide or arc)
+    step: float                # length of the next move (m)
+    best: float                # deepest depth reached so far (m along Δ)
+    learned: Contacts          # blocking patches taught by a rejected move
+    proof_checks: int = 0
+    stalled_at: Pose | None = None   # where the climb last ran out of moves
+
+    def _moved_since_stall(self) -> bool:
+        """True unless the pose is within one finest move of where the climb last stalled."""
+        if self.stalled_at is None:
+            return True
+        s = self.search
+        d = s.centre(self.pose) - s.centre(self.stalled_at)
+        slide = float(np.linalg.norm(d - (d @ s.push) * s.push))
+        rel = self.pose[:3, :3] @ self.stalled_at[:3, :3].T
+        spin = math.acos(max(-1.0, min(1.0, 0.5 * (float(np.trace(rel)) - 1.0))))
+        return slide + spin * self.arm > self.finest
+
+    def resume(self) -> tuple[Floats, float] | None:
+        """When the contacts balance or the step ran out: narrow the contact set, or restart
+        a fresh slope with the finest step - at most once per place, so a kink (a wedge
+        whose walls take turns in a narrow contact set) ends in the proof instead of a cycle.
+        """
+        if not self._moved_since_stall():
+            return None
+        self.stalled_at = self.pose
+        if self.step >= 0.25 * self.finest and not self.sharpen():
+            return None
+        chosen = self.choose()
+        if chosen is not None:
+            self.step = max(self.step, self.finest)
+        return chosen
+
+    # ---- first-order model ---------------------------------------------------------
+    def gradients(self, contacts: Contacts, pose: Pose | None = None) -> Floats:
+        """Depth gradient (k, 3) of each facing patch w.r.t. (slide e1, slide e2, arc), for
+        the body at `pose` (default: the current pose)."""
+        s = self.search
+        pose = self.pose if pose is None else pose
+        facing = s.facing(contacts, s.push)
+        if len(facing) == 0:
+            return np.zeros((0, 3))
+        n, pts = facing.normals, facing.points
+        lever = np.cross(s.push, pts - s.centre(pose)) / self.arm
+        down = -(n @ s.push)
+        return np.stack([n @ s.e1, n @ s.e2, np.einsum('ij,ij->i', n, lever)], 1) \
+            * s.free / down[:, None]
+
+    def _envelope_mask(self, direction: Floats) -> Floats:
+        """Where the envelope holds: drop the parts of `direction` that leave it."""
+        s, p = self.search, self.search.params
+        if not p.envelope_holds:
+            return direction
+        slide, spin = s.offset(self.pose)
+        out = direction.copy()
+        norm = float(np.linalg.norm(slide))
+        if norm >= p.max_slide_m - self.finest and norm > 0.0:
+            radial = slide / norm
+            outward = float(out[:2] @ radial)
+            if outward > 0.0:
+                out[:2] -= outward * radial
+        if abs(spin) >= p.max_spin_rad - self.finest / self.arm and out[2] * spin > 0.0:
+            out[2] = 0.0
+        return out
+
+    # ---- the four steps ---------------------------------------------------------------
+    def choose(self) -> tuple[Floats, float] | None:
+        """The steepest admissible move (unit direction, slope), or None when balanced.
+
+        Contacts learned from a rejected move (D2) that balance the floor are dropped
+        again: they were the same slope seen past its crest, not a new wall, and the
+        shortened step along the floor's own direction finds the crest instead.
+        """
+        for contacts in ((self.floor + self.learned, self.floor) if len(self.learned)
+                         else (self.floor,)):
+            grads = self.gradients(contacts)
+            if len(grads) == 0:
+                return None
+            d = self._envelope_mask(_min_norm_point(grads))
+            norm = float(np.linalg.norm(d))
+            if norm > SLOPE:
+                direction = d / norm
+                slope = float(np.min(grads @ direction))
+                if slope > 0.0:
+                    return direction, slope
+        self.learned = Contacts.empty()
+        return self.pivot()
+
+    def pivot(self) -> tuple[Floats, float] | None:
+        """D1b: the hull balances only because one patch sits at its own crest (its normal
+        along Δ, so its gradient vanishes): a smooth crest does not hold the body there to
+        first order. Pin that patch's point and spin about it, the way that gains at every
+        other patch; None when that gains nowhere (or two crests pin the body)."""
+        s = self.search
+        facing = s.facing(self.floor, s.push)
+        grads = self.gradients(facing)
+        if len(grads) < 2 or not s.free[0]:
+            return None
+        flat = np.linalg.norm(grads, axis=1) <= CREST
+        if int(flat.sum()) != 1:
+            return None
+        lever = np.cross(s.push, facing.points[flat][0] - s.centre(self.pose))
+        spin = np.array([-(lever @ s.e1) / self.arm, -(lever @ s.e2) / self.arm, 1.0])
+        spin = self._envelope_mask(spin / np.linalg.norm(spin))
+        norm = float(np.linalg.norm(spin))
+        if norm == 0.0:
+            return None
+        spin /= norm
+        for direction in (spin, -spin):
+            slope = float(np.min(grads[~flat] @ direction))
+            if slope > SLOPE:
+                return direction, slope
+        return None
+
+    def sharpen(self) -> bool:
+        """Narrow the contact bracket to `FINE` of the tolerance; True when the contact set
+        changed (a patch that was only near contact drops out and no longer balances)."""
+        s = self.search
+        fine = self.tol * FINE
+        gap = s.depth(self.touching) - s.depth(self.pose)
+        if gap <= fine:
+            return False
+        lo, hi = 0.0, gap
+        while hi - lo > fine:
+            mid = 0.5 * (lo + hi)
+            if s.collides(translated(self.pose, mid * s.push)):
+                hi = mid
+            else:
+                lo = mid
+        self.pose = translated(self.pose, lo * s.push)
+        self.touching = translated(self.pose, (hi - lo) * s.push)
+        before = len(self.floor)
+        self.floor = s.patches(self.touching)
+        self.best = max(self.best, s.depth(self.pose))
+        return len(self.floor) != before
+
+    def _limit_to_envelope(self, direction: Floats, length: float) -> float:
+        """The longest move along `direction` (up to `length`) that stays inside."""
+        s, p = self.search, self.search.params
+        if not p.envelope_holds:
+            return length
+        slide, spin = s.offset(self.pose)
+        a, b = direction[:2], slide
+        aa = float(a @ a)
+        if aa > 0.0:                       # |b + t a| <= max_slide
+            bb, ab = float(b @ b), float(a @ b)
+            disc = ab * ab - aa * (bb - p.max_slide_m ** 2)
+            if disc >= 0.0:
+                length = min(length, max((-ab + math.sqrt(disc)) / aa, 0.0))
+        if direction[2] != 0.0:
+            room = p.max_spin_rad - math.copysign(1.0, direction[2]) * spin
+            length = min(length, max(room * self.arm / abs(direction[2]), 0.0))
+        return length
+
+    def move(self, direction: Floats, slope: float) -> str | None:
+        """One line-search step along `direction`; returns an end reason or None."""
+        s = self.search
+        length = self._limit_to_envelope(direction, self.step)
+        if length < 0.25 * self.finest:
+            self.step = 0.0
+            return None
+        target = s.lateral(self.pose, length * direction, self.arm)
+        bracket = s.touch(target, length * slope, self.tol)
+        if bracket is None:
+            return LOST_CONTACT
+        depth = s.depth(bracket.free)
+        floor = s.patches(bracket.touching)
+        grads = self.gradients(floor, bracket.free)
+        new_slope = float(np.min(grads @ direction)) if len(grads) else slope
+        if depth < self.best - self.tol:
+            # lost depth: the move met a contact the patches did not know (D2: learn it, so
+            # that the next direction respects it) or overshot the crest; shorten it
+            blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
+            facing = s.facing(floor, s.push)
+            self.learned = self.learned + Contacts(facing.points[blocking],
+                                                   facing.normals[blocking])
+            self.step = length * min(self._crest(slope, new_slope, shrink=0.25), 0.5)
+            return None
+        self.pose, self.touching, self.floor = bracket.free, bracket.touching, floor
+        self.learned = Contacts.empty()
+        self.best = max(self.best, depth)
+        if new_slope >= 0.5 * slope:
+            self.step = min(2.0 * length, MAX_MOVE_STEPS * s.params.step_m)
+        else:
+            self.step = length * self._crest(slope, new_slope, shrink=0.25)
+        return s.beyond_envelope(self.pose) if not s.params.envelope_holds else None
+
+    @staticmethod
+    def _crest(slope: float, new_slope: float, shrink: float) -> float:
+        """Fraction of the last move at which the slope would reach zero (secant)."""
+        if new_slope >= slope:
+            return 1.0
+        return min(max(slope / (slope - new_slope), shrink), 1.0)
+
+    def prove(self) -> bool | str:
+        """D5: probe around the pose; True when a probe gained (and was followed), False at
+        rest, or an end reason (a probe lost contact)."""
+        s = self.search
+        lift = 0.5 * s.params.resolution_m
+        checks_before = s.pair.checks
+        grads = self.gradients(self.floor)
+        try:
+            for scale in PROBE_SCALES:
+                length = scale * self.finest
+                directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
+                if len(grads):               # most promising first
+                    directions = directions[np.argsort(-np.min(grads @ directions.T, axis=0))]
+                for d in directions:
+                    if s.params.envelope_holds and \
+                            self._limit_to_envelope(d, length) < length:
+                        continue
+                    cand = s.lateral(self.pose, length * d, self.arm)
+                    if s.collides(translated(cand, lift * s.push)):
+                        continue
+                    return self._follow(d, length, lift)
+        finally:
+            self.proof_checks += s.pair.checks - checks_before
+        return False
+
+    def _follow(self, direction: Floats, length: float, lift: float) -> bool | str:
+        """A probe gained: follow its direction outward while it keeps gaining."""
+        s = self.search
+        best: Bracket | None = None
+        while True:
+            target = s.lateral(self.pose, length * direction, self.arm)
+            bracket = s.touch(translated(target, lift * s.push), 0.0, self.tol)
+            if bracket is None:
+                return LOST_CONTACT if best is None else self._adopt(best)
+            if best is not None and s.depth(bracket.free) <= s.depth(best.free) + self.tol:
+                break
+            best = bracket
+            grown = self._limit_to_envelope(direction, 2.0 * length)
+            if grown <= length or grown > MAX_MOVE_STEPS * s.params.step_m:
+                break
+            length = grown
+        return self._adopt(best)
+
+    def _adopt(self, bracket: Bracket) -> bool | str:
+        s = self.search
+        self.pose, self.touching = bracket.free, bracket.touching
+        self.floor, self.learned = s.patches(bracket.touching), Contacts.empty()
+        self.best = max(self.best, s.depth(self.pose))
+        self.step = max(self.step, 2.0 * self.finest)
+        return s.beyond_envelope(self.pose) if not s.params.envelope_holds else True
+
+    def on_boundary(self) -> str | None:
+        """Which envelope bound the pose rests on, if any."""
+        s, p = self.search, self.search.params
+        slide, spin = s.offset(self.pose)
+        if float(np.linalg.norm(slide)) >= p.max_slide_m - self.finest:
+            return f'slide {p.max_slide_m * 1e3:g} mm'
+        if abs(spin) >= p.max_spin_rad - self.finest / self.arm:
+            return f'spin {math.degrees(p.max_spin_rad):g} deg'
+        return None
+
+
+def run_climb(search: Search, bracket: Bracket) -> SettleResult:
+    """Climb from the first exact contact `bracket` to a rest pose (module docstring)."""
+    p = search.params
+    arm = max(search.pair.moving.reach, p.step_m)
+    rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
+        else p.resolution_m / arm
+    tol = p.resolution_m / 4.0
+    finest = min(p.resolution_m, rot_res * arm)
+    climb = _Climb(search, bracket.free, bracket.touching, search.patches(bracket.touching),
+                   arm, tol, finest, p.step_m, search.depth(bracket.free), Contacts.empty())
+    while search.iterations < p.max_iterations:
+        search.iterations += 1
+        chosen = climb.choose() if climb.step >= 0.25 * finest else None
+        if chosen is None:
+            chosen = climb.resume()
+        if chosen is None:
+            outcome = climb.prove()
+            if outcome is False:
+                bound = climb.on_boundary() if p.envelope_holds else None
+                if bound:
+                    return search.result(
+                        climb.pose, True, f'rest on the envelope boundary ({bound}): nothing '
+                        'inside the envelope gains more than the resolution along the push',
+                        climb.floor, constrained=True, proof_checks=climb.proof_checks)
+                return search.result(
+                    climb.pose, True, 'rest: no slide, spin about the push or combination, '
+                    'short or long, gains more than the resolution along the push',
+                    climb.floor, proof_checks=climb.proof_checks)
+            if isinstance(outcome, str):
+                return search.result(climb.pose, False, outcome, climb.floor,
+                                     proof_checks=climb.proof_checks)
+            continue
+        end = climb.move(*chosen)
+        if end is not None:
+            return search.result(climb.pose, False, end, climb.floor,
+                                 proof_checks=climb.proof_checks)
+    return search.result(climb.pose, False, f'iteration cap ({p.max_iterations}) reached '
+                         'before rest was verified', climb.floor,
+                         proof_checks=climb.proof_checks)

@@ -1,0 +1,432 @@
+"""What both settle methods share: parameters, results, the push frame and exact contact.
+
+`Search` holds one settle's collision pair, its push direction `Δ` with an in-plane basis
+(e1, e2), the lateral moves (slides across Δ and spins about an axis parallel to Δ), exact
+contact along Δ by bracketing and dichotomy, and the contacts at a pose. The methods
+(`kneeseat_core.patent`, `kneeseat_core.climb`) decide which moves to make.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import logging
+import math
+import time
+from typing import Callable, Literal
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .collision import CollisionPair, RigidBody
+from .errors import SettleError
+from .geometry import rotation_about, unit
+from .typed import Floats, Pose
+
+__all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'Search', 'Bracket',
+           'LOST_CONTACT', 'translated', 'rotated']
+
+log = logging.getLogger('kneeseat_core.settle')
+
+Method = Literal['default', 'patent']
+
+LOST_CONTACT = ('lost contact: the body slid off the edge of the fixed body without finding '
+                'rest along this push')
+
+
+@dataclass(frozen=True, slots=True)
+class SettleParams:
+    """Knobs of one settle, SI units; defaults are the patent's numbers for a knee."""
+
+    push: tuple[float, float, float] = (0.0, -1.0, 0.0)   # Δ, fixed frame (normalised)
+    step_m: float = 1e-3                    # translation modeling step
+    resolution_m: float = 1e-4              # T2, exact-contact tolerance
+    rotation_step_rad: float | None = None  # None: arc of one step at the farthest vertex
+    rotation_resolution_rad: float | None = None  # None: method's own rule (see settle.py)
+    max_iterations: int = 500
+    method: Method = 'default'
+    # A slide direction (fixed frame) the body may not translate along, e.g. a patella
+    # held at its height along the groove by its tendon; None: the whole plane is free.
+    locked_slide: tuple[float, float, float] | None = None
+    # The search envelope, measured from the settle's anchor pose (its start unless given):
+    # how far the body may slide across the push and spin about it. A rest beyond it is
+    # "not converged"; with `envelope_holds` the envelope is a constraint instead (soft
+    # tissue standing in) and a rest on its boundary is reported as constrained.
+    max_slide_m: float = 0.02
+    max_spin_rad: float = math.radians(45.0)
+    envelope_holds: bool = False
+
+    def check(self) -> None:
+        """Raise SettleError naming the first invalid parameter."""
+        unit(np.asarray(self.push, dtype=float), 'push direction')
+        for name in ('step_m', 'resolution_m', 'max_slide_m', 'max_spin_rad'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise SettleError(f'{name}={value} must be a positive number')
+        if self.resolution_m > self.step_m:
+            raise SettleError(f'resolution {self.resolution_m} m is coarser than the step '
+                              f'{self.step_m} m; give a resolution below the step')
+        for name in ('rotation_step_rad', 'rotation_resolution_rad'):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and 0 < value < math.pi):
+                raise SettleError(f'{name}={value} must be between 0 and pi rad')
+        if self.max_spin_rad > math.pi:
+            raise SettleError(f'max_spin_rad={self.max_spin_rad} must be at most pi rad')
+        if self.max_iterations < 1:
+            raise SettleError(f'max_iterations={self.max_iterations} must be at least 1')
+        if self.locked_slide is not None:
+            lock = unit(np.asarray(self.locked_slide, dtype=float), 'locked slide')
+            push = unit(np.asarray(self.push, dtype=float), 'push direction')
+            if float(np.linalg.norm(lock - (lock @ push) * push)) < 0.1:
+                raise SettleError('the locked slide direction is (nearly) parallel to the push; '
+                                  'give a direction across the push')
+        if self.method not in ('default', 'patent'):
+            raise SettleError(f"method '{self.method}' is unknown; use default or patent")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Contacts:
+    """Contact application points and reaction normals, fixed frame."""
+
+    points: Floats    # (k, 3) m
+    normals: Floats   # (k, 3) unit outward normals of the reference there
+
+    @classmethod
+    def empty(cls) -> Contacts:
+        """No contact."""
+        return cls(np.zeros((0, 3)), np.zeros((0, 3)))
+
+    def __add__(self, other: Contacts) -> Contacts:
+        return Contacts(np.concatenate([self.points, other.points]),
+                        np.concatenate([self.normals, other.normals]))
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SettleResult:
+    """Outcome of one settle; `converged` False always comes with a reason."""
+
+    pose: Pose                  # (4, 4) fixed_from_moving at the end (apart, within T2)
+    converged: bool
+    reason: str
+    iterations: int
+    collision_checks: int
+    contacts: Contacts          # final contacts
+    elapsed_s: float
+    fcl_s: float                # part of elapsed_s spent inside python-fcl (s)
+    backed_out_m: float = 0.0   # distance the start was backed out along -Δ
+    constrained: bool = False   # a rest held by the envelope (envelope_holds), not geometry
+    proof_checks: int = 0       # collision queries spent proving rest (default method)
+
+
+def translated(pose: Pose, v: Floats) -> Pose:
+    """`pose` moved by the vector `v` (fixed frame)."""
+    out = pose.copy()
+    out[:3, 3] += v
+    return out
+
+
+def rotated(pose: Pose, rot: Floats, centre: Floats) -> Pose:
+    """Rotate the whole body by `rot` (3, 3) about `centre` (3,) (fixed frame)."""
+    out = np.empty((4, 4))
+    out[:3, :3] = rot @ pose[:3, :3]
+    out[:3, 3] = rot @ (pose[:3, 3] - centre) + centre
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Bracket:
+    """Exact contact along Δ: `free` and `touching` poses at most the tolerance apart."""
+
+    free: Pose
+    touching: Pose
+
+
+@dataclass(slots=True, eq=False)
+class Search:
+    """One settle's pair, push frame, counters and shared primitives."""
+
+    pair: CollisionPair
+    start: Pose
+    params: SettleParams
+    anchor: Pose                        # the envelope is measured from here
+    push: Floats = field(init=False)
+    e1: Floats = field(init=False)
+    e2: Floats = field(init=False)
+    free: Floats = field(init=False)    # (3,) 1 for each free move coordinate (e1, e2, spin)
+    iterations: int = 0
+    started: float = field(default_factory=time.perf_counter)
+    backed_out_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.push = unit(np.asarray(self.params.push, dtype=float), 'push direction')
+        if self.params.locked_slide is not None:   # e1 is the locked direction
+            axis = np.asarray(self.params.locked_slide, dtype=float)
+        else:
+            axis = np.eye(3)[int(np.argmin(np.abs(self.push)))]
+        self.e1 = unit(axis - (axis @ self.push) * self.push, 'in-plane axis')
+        self.free = np.array([0.0 if self.params.locked_slide is not None else 1.0, 1.0, 1.0])
+        self.e2 = np.cross(self.push, self.e1)
+
+    # ---- geometry ---------------------------------------------------------------------
+    def depth(self, pose: Pose) -> float:
+        """Position of `pose` along Δ (m)."""
+        return float(pose[:3, 3] @ self.push)
+
+    def centre(self, pose: Pose) -> Floats:
+        """The moving body's centroid at `pose` (the spin axis passes through it)."""
+        return pose[:3, :3] @ self.pair.moving.centroid + pose[:3, 3]
+
+    def radius_about(self, pose: Pose, centre: Floats) -> float:
+        """Distance of the farthest moving vertex from the axis through `centre` ∥ Δ."""
+        world = self.pair.moving.vertices @ pose[:3, :3].T + pose[:3, 3]
+        rel = world - centre
+        rel -= np.outer(rel @ self.push, self.push)
+        return float(np.sqrt(np.max(np.einsum('ij,ij->i', rel, rel))))
+
+    def travel_limit(self, pose: Pose) -> float:
+        """Farthest travel along Δ after which no contact can happen any more."""
+        fixed, moving = self.pair.fixed, self.pair.moving
+        moving_c = pose[:3, :3] @ moving.bound_centre + pose[:3, 3]
+        return float(np.linalg.norm(moving_c - fixed.bound_centre) + fixed.bound_radius
+                     + moving.bound_radius)
+
+    def lateral(self, base: Pose, move: Floats, arm: float) -> Pose:
+        """`base` slid by move[0] e1 + move[1] e2 and spun by move[2] / arm (rad) about the
+        axis through its centroid parallel to Δ (a spin about any other centre is this
+        plus a slide)."""
+        x = np.asarray(move, dtype=np.float64) * self.free
+        out = rotated(base, rotation_about(self.push, x[2] / arm), self.centre(base))
+        out[:3, 3] += x[0] * self.e1 + x[1] * self.e2
+        return out
+
+    def offset(self, pose: Pose) -> tuple[Floats, float]:
+        """Slide across Δ (e1, e2) of the centroid and spin about Δ (rad) from the anchor."""
+        d = self.centre(pose) - self.centre(self.anchor)
+        rel = pose[:3, :3] @ self.anchor[:3, :3].T
+        sin = 0.5 * np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0],
+                              rel[1, 0] - rel[0, 1]]) @ self.push
+        spin = math.atan2(float(sin), 0.5 * (float(np.trace(rel)) - 1.0))
+        return np.array([d @ self.e1, d @ self.e2]), spin
+
+    def beyond_envelope(self, pose: Pose) -> str | None:
+        """Why `pose` lies outside the search envelope, or None."""
+        slide, spin = self.offset(pose)
+        p = self.params
+        if float(np.linalg.norm(slide)) > p.max_slide_m:
+            return (f'slid {np.linalg.norm(slide) * 1e3:.1f} mm across the push without '
+                    f'finding rest (envelope {p.max_slide_m * 1e3:.0f} mm): no resting place '
+                    'near the start')
+        if abs(spin) > p.max_spin_rad:
+            return (f'turned {math.degrees(abs(spin)):.1f} deg about the push without finding '
+                    f'rest (envelope {math.degrees(p.max_spin_rad):.0f} deg): no resting place '
+                    'near the start')
+        return None
+
+    # ---- collision ----------------------------------------------------------------------
+    def collides(self, pose: Pose) -> bool:
+        """Boolean collision query."""
+        return self.pair.collides(pose)
+
+    def contacts(self, pose: Pose) -> Contacts:
+        """The colliding reference triangles at `pose`: centres and normals."""
+        ids = self.pair.contacts(pose)
+        return Contacts(self.pair.fixed.centres[ids], self.pair.fixed.normals[ids])
+
+    def patches(self, pose: Pose) -> Contacts:
+        """The contact patches at `pose`, one (point, normal) each.
+
+        The contacts are the points where the surfaces cross (python-fcl), each with the
+        reference's normal interpolated there from its vertex normals; contacts on
+        connected reference triangles form a patch, split where its normals spread more
+        than `PATCH_SPREAD_RAD` (a crease), and each patch counts once: its mean point
+        and mean normal stand for the one contact point that a deeper look would find.
+        """
+        ids, points = self.pair.contact_points(pose)
+        if len(ids) == 0:
+            return Contacts.empty()
+        fixed = self.pair.fixed
+        normals = _interpolated_normals(fixed, ids, points)
+        labels = _components(fixed, ids)
+        out_p, out_n = [], []
+        for label in range(int(labels.max()) + 1):
+            sel = labels == label
+            for pts, nrm in _split(points[sel], normals[sel]):
+                out_p.append(pts)
+                out_n.append(nrm)
+        return Contacts(np.array(out_p), np.array(out_n))
+
+    def facing(self, contacts: Contacts, motion: Floats) -> Contacts:
+        """Drop back-facing normals: normal · motion >= 0 (patent FIG. 5)."""
+        keep = contacts.normals @ motion < 0.0
+        return Contacts(contacts.points[keep], contacts.normals[keep])
+
+    def bisect(self, move: Callable[[float], Pose], tol_fraction: float) -> tuple[float, float]:
+        """Dichotomy on a motion `move(s)`, s in [0, 1]: free at 0, colliding at 1.
+
+        Returns (free_s, colliding_s) with colliding_s - free_s <= tol_fraction.
+        """
+        lo, hi = 0.0, 1.0
+        while hi - lo > tol_fraction:
+            mid = 0.5 * (lo + hi)
+            if self.collides(move(mid)):
+                hi = mid
+            else:
+                lo = mid
+        return lo, hi
+
+    def back_out(self, pose: Pose) -> Pose:
+        """Move a start in collision back along -Δ until free (recorded in backed_out_m)."""
+        if not self.collides(pose):
+            return pose
+        limit = self.travel_limit(pose)
+        dist = self.params.step_m
+        while dist <= 2.0 * limit:
+            cand = translated(pose, -dist * self.push)
+            if not self.collides(cand):
+                lo, _ = self.bisect(lambda s: translated(pose, -dist * (1.0 - s) * self.push),
+                                    self.params.resolution_m / dist)
+                self.backed_out_m = dist * (1.0 - lo)
+                log.info('start pose was in collision: backed out %.3f mm along -push',
+                         self.backed_out_m * 1e3)
+                return translated(pose, -self.backed_out_m * self.push)
+            dist *= 2.0
+        raise SettleError('the start pose is buried in the fixed body and cannot be backed out '
+                          'along the push direction; start the moving body outside it')
+
+    def drop(self, pose: Pose, tol_m: float, limit_m: float | None = None,
+             step_m: float | None = None) -> Bracket | None:
+        """Translate along Δ by steps until collision, then dichotomy (FIGS. 2-4).
+
+        Returns the bracket (less than `tol_m` wide), or None when no contact happens
+        within `limit_m`. `step_m` defaults to the translation step.
+        """
+        step = self.params.step_m if step_m is None else step_m
+        limit = self.travel_limit(pose) if limit_m is None else limit_m
+        travelled = 0.0
+        while travelled <= limit:
+            nxt = translated(pose, step * self.push)
+            if self.collides(nxt):
+                base = pose
+                lo, hi = self.bisect(lambda s: translated(base, s * step * self.push),
+                                     tol_m / step)
+                return Bracket(translated(base, lo * step * self.push),
+                               translated(base, hi * step * self.push))
+            pose = nxt
+            travelled += step
+        return None
+
+    def touch(self, pose: Pose, guess_m: float, tol_m: float) -> Bracket | None:
+        """Exact contact along Δ from a lateral pose whose contact is expected `guess_m`
+        further along Δ (negative: it overlaps). Brackets around the guess, widening by
+        doubling, then bisects to `tol_m`. None: no contact within the travel limit."""
+        width = tol_m
+        free_t: float | None = None
+        hit_t: float | None = None
+        guess = max(guess_m, 0.0)
+        if guess > tol_m:
+            t = guess + tol_m
+            if self.collides(translated(pose, t * self.push)):
+                hit_t = t
+            else:
+                free_t = t
+        if hit_t is None and free_t is None:
+            if self.collides(pose):
+                hit_t = 0.0
+            else:
+                free_t = 0.0
+        limit = self.travel_limit(pose)
+        while free_t is None:                       # retreat until free
+            t = hit_t - width                       # type: ignore[operator]
+            if -t > 2.0 * limit:
+                return None
+            if self.collides(translated(pose, t * self.push)):
+                hit_t, width = t, 2.0 * width
+            else:
+                free_t = t
+        while hit_t is None:                        # advance until touching (no tunnelling)
+            t = free_t + min(width, self.params.step_m)
+            if t > limit:
+                return None
+            if self.collides(translated(pose, t * self.push)):
+                hit_t = t
+            else:
+                free_t, width = t, 2.0 * width
+        lo, hi = free_t, hit_t
+        while hi - lo > tol_m:
+            mid = 0.5 * (lo + hi)
+            if self.collides(translated(pose, mid * self.push)):
+                hi = mid
+            else:
+                lo = mid
+        return Bracket(translated(pose, lo * self.push), translated(pose, hi * self.push))
+
+    def result(self, pose: Pose, converged: bool, reason: str, contacts: Contacts,
+               constrained: bool = False, proof_checks: int = 0) -> SettleResult:
+        """Package the end of a settle."""
+        return SettleResult(pose, converged, reason, self.iterations, self.pair.checks,
+                            contacts, time.perf_counter() - self.started, self.pair.fcl_s,
+                            self.backed_out_m, constrained, proof_checks)
+
+
+# Normals within a patch that spread more than this from its mean split it (a crease).
+PATCH_SPREAD_RAD = math.radians(12.0)
+
+
+def _interpolated_normals(body: RigidBody, ids: np.ndarray, points: Floats) -> Floats:
+    """Vertex normals of triangles `ids` interpolated (barycentric) at `points` (k, 3)."""
+    tri = body.faces[ids]
+    a, b, c = (body.vertices[tri[:, i]] for i in range(3))
+    v0, v1, v2 = b - a, c - a, points - a
+    d00, d01, d11 = (np.einsum('ij,ij->i', x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum('ij,ij->i', v2, v0), np.einsum('ij,ij->i', v2, v1)
+    denom = d00 * d11 - d01 * d01
+    denom = np.where(np.abs(denom) > 1e-30, denom, 1.0)
+    wb = (d11 * d20 - d01 * d21) / denom
+    wc = (d00 * d21 - d01 * d20) / denom
+    w = np.clip(np.stack([1.0 - wb - wc, wb, wc], axis=1), 0.0, None)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+    vn = body.vertex_normals
+    n = w[:, 0:1] * vn[tri[:, 0]] + w[:, 1:2] * vn[tri[:, 1]] + w[:, 2:3] * vn[tri[:, 2]]
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    bad = length[:, 0] < 1e-9
+    n[bad] = body.normals[ids[bad]]
+    length[bad] = 1.0
+    return n / length
+
+
+def _components(body: RigidBody, ids: np.ndarray) -> np.ndarray:
+    """Label (k,) of the connected set of reference triangles each contact lies on."""
+    unique, inverse = np.unique(ids, return_inverse=True)
+    indptr, indices = body.adjacency
+    starts, ends = indptr[unique], indptr[unique + 1]
+    counts = ends - starts
+    rows = np.repeat(np.arange(len(unique)), counts)
+    flat = np.repeat(starts - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts) \
+        + np.arange(int(counts.sum()))
+    cols = np.searchsorted(unique, indices[flat])
+    cols = np.minimum(cols, len(unique) - 1)
+    keep = unique[cols] == indices[flat]
+    graph = coo_matrix((np.ones(int(keep.sum())), (rows[keep], cols[keep])),
+                       shape=(len(unique), len(unique)))
+    _, labels = connected_components(graph, directed=False)
+    return labels[inverse]
+
+
+def _split(points: Floats, normals: Floats, depth: int = 0) -> list[tuple[Floats, Floats]]:
+    """A patch as one (mean point, mean normal), or split in two across its widest normal
+    spread while the normals spread more than PATCH_SPREAD_RAD (at most 8 parts)."""
+    mean = normals.sum(axis=0)
+    mean /= max(float(np.linalg.norm(mean)), 1e-12)
+    if len(points) == 1 or depth >= 3 or \
+            float(np.min(normals @ mean)) >= math.cos(PATCH_SPREAD_RAD):
+        return [(points.mean(axis=0), mean)]
+    deviation = normals - np.outer(normals @ mean, mean)
+    _, _, vt = np.linalg.svd(deviation, full_matrices=False)
+    side = deviation @ vt[0] > 0.0
+    if side.all() or not side.any():
+        return [(points.mean(axis=0), mean)]
+    return (_split(points[side], normals[side], depth + 1)
+            + _split(points[~side], normals[~side], depth + 1))
