@@ -101,3 +101,50 @@ def two_bowls(radius: float, depths: tuple[float, float], separation: float,
             out = np.minimum(out, -depth + radius - np.sqrt(radius * radius - r2))
         return out
     return heightfield_solid(surface, half_x, half_z, n, bottom=-max(depths) - 0.02)
+
+
+def dumbbell_unequal(radii: tuple[float, float], separation: float,
+                     bar_radius: float) -> trimesh.Trimesh:
+    """Two spheres of different radii joined rigidly (centres at x = -/+ separation/2)."""
+    parts = []
+    for radius, x in zip(radii, (-separation / 2, separation / 2)):
+        ball = sphere(radius)
+        ball.apply_translation((x, 0, 0))
+        parts.append(ball)
+    parts.append(trimesh.creation.cylinder(
+        radius=bar_radius, height=separation,
+        transform=trimesh.transformations.rotation_matrix(np.pi / 2, (0, 1, 0))))
+    return trimesh.util.concatenate(parts)
+
+
+def bowls(radii: tuple[float, float], depths: tuple[float, float], separation: float,
+          half_x: float, half_z: float, n: int = 241) -> trimesh.Trimesh:
+    """Two spherical dishes of their own radius and depth at x = -/+ separation/2."""
+    def surface(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(x)
+        for cx, radius, depth in zip((-separation / 2, separation / 2), radii, depths):
+            r2 = np.minimum((x - cx) ** 2 + z * z, radius * radius)
+            out = np.minimum(out, -depth + radius - np.sqrt(radius * radius - r2))
+        return out
+    return heightfield_solid(surface, half_x, half_z, n, bottom=-max(depths) - 0.02)
+
+
+def rounded_box(half: tuple[float, float, float], corner: float) -> trimesh.Trimesh:
+    """A box of half-sizes `half` (x, y, z) whose edges and corners are rounded by `corner`:
+    the convex hull of eight spheres of that radius inset at the corners."""
+    inner = np.asarray(half, dtype=float) - corner
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=corner)
+    points = [ball.vertices + inner * np.array(signs)
+              for signs in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3)]
+    return trimesh.convex.convex_hull(np.concatenate(points))
+
+
+def tapered_pocket(half: tuple[float, float], slope: float, depth: float, extent: float,
+                   n: int = 241) -> trimesh.Trimesh:
+    """A pit with a flat floor of half-sizes `half` (x, z) at y = -depth whose four walls
+    rise at `slope` (dy per unit distance outwards) up to the top at y = 0."""
+    def surface(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        out_x = np.maximum(np.abs(x) - half[0], 0.0)
+        out_z = np.maximum(np.abs(z) - half[1], 0.0)
+        return np.minimum(-depth + slope * np.maximum(out_x, out_z), 0.0)
+    return heightfield_solid(surface, extent, extent, n, bottom=-depth - 0.02)
