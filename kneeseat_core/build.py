@@ -14,10 +14,13 @@ from pathlib import Path
 import sys
 from typing import Any, Callable, Iterator
 
+import numpy as np
 from tqdm import tqdm
 
+from .continuity import continuity
 from .errors import ConfigError
 from .knee import grid_values, KneeConfig, load_config
+from .status import STATUS_NAMES
 from .sweep import default_workers, process_executor, sweep, SweepResult
 from .table import PoseTable, write_table
 
@@ -90,6 +93,12 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
                     'wall_s': round(result.wall_s, 3),
                     'collision_checks': int(result.collision_checks)},
         'failures': list(result.failures),
+        # how each cell's settle ended (codes: kneeseat_core.search.Status)
+        'cells': {'status_names': {str(k): v for k, v in STATUS_NAMES.items()},
+                  'status': np.asarray(result.status).tolist()},
+        'continuity': continuity(result.position_m, result.orientation_xyzw, result.converged,
+                                 config.flexion_rad, config.varus_rad,
+                                 [b.name for b in config.bodies]),
     }
     return PoseTable(config.flexion_rad, config.varus_rad, result.position_m,
                      result.orientation_xyzw, result.converged, result.iterations, metadata)
@@ -116,9 +125,16 @@ def summary_line(table: PoseTable, out: Path) -> str:
     conv = s['converged'] / max(s['cells'], 1)
     per_body = ', '.join(f'{name} {100 * table.converged[i].mean():.1f}%'
                          for i, name in enumerate(table.bodies))
-    return (f'{out}: {s["cells"]} cells, {100 * conv:.1f}% converged ({per_body}), '
+    line = (f'{out}: {s["cells"]} cells, {100 * conv:.1f}% converged ({per_body}), '
             f'{s["wall_s"]:.1f} s wall, {s["cells"] / max(s["wall_s"], 1e-9):.1f} cells/s, '
             f'{s["collision_checks"] / max(s["cells"], 1):.0f} collision checks per cell')
+    cont = table.metadata.get('continuity')
+    if isinstance(cont, dict):
+        over = sum(sum(b['pairs_over_bound'].values()) for b in cont['bodies'].values())
+        line += (f'; {over} neighbour pairs over {cont["bound_mm"]:g} mm / '
+                 f'{cont["bound_deg"]:g} deg, {len(cont["branch_changes"])} of them branch '
+                 'changes between cells at rest')
+    return line
 
 
 @contextmanager

@@ -1,4 +1,4 @@
-"""`kneeseat` command line: settle, build, info, lookup, export, synth, plot, render.
+"""`kneeseat` command line: settle, build, verify, info, lookup, export, synth, plot, render.
 
 Errors a user can fix print one line on stderr and exit non-zero (no traceback unless
 --debug). `kneeseat settle` exit codes are fixed by DESIGN.md: 0 converged, 3 not
@@ -18,7 +18,7 @@ import numpy as np
 
 from .errors import KneeseatError, NoContactError
 
-__all__ = ['main', 'build_parser']
+__all__ = ['main', 'build_parser', 'load_start_pose']
 
 log = logging.getLogger('kneeseat')
 
@@ -82,12 +82,19 @@ _VALUE_FLAGS = {'--push', '--flexion-deg', '--varus-deg', '--rotation-step',
 
 
 # ---- settle --------------------------------------------------------------------------
-def _load_start(path: Path | None) -> np.ndarray:
+def load_start_pose(path: Path | None, data: Any = None) -> np.ndarray:
+    """A (4, 4) pose from a START.json `{"position":[x,y,z],"orientation":[x,y,z,w]}` (or
+    from `data`, that file's content already parsed); identity without a path.
+
+    Raises:
+        KneeseatError: the file is missing or is not such a pose (one-line message).
+    """
     from .geometry import matrix_from_quat, pose_from
     if path is None:
         return np.eye(4)
     try:
-        data = json.loads(Path(path).read_text())
+        if data is None:
+            data = json.loads(Path(path).read_text())
         position = np.asarray(data['position'], dtype=float).reshape(3)
         quat = np.asarray(data['orientation'], dtype=float).reshape(4)
     except FileNotFoundError:
@@ -130,7 +137,7 @@ def _cmd_settle(args: argparse.Namespace) -> int:
                                  else math.radians(args.rotation_resolution)),
         max_iterations=args.max_iterations, method=args.method)
     params.check()
-    start = _load_start(args.start)
+    start = load_start_pose(args.start)
     fixed = RigidBody.from_mesh(load_mesh(args.fixed, args.units))
     moving = RigidBody.from_mesh(load_mesh(args.moving, args.units))
     try:
@@ -158,8 +165,11 @@ def _cmd_settle(args: argparse.Namespace) -> int:
 
 # ---- table commands -------------------------------------------------------------------
 def _cmd_info(args: argparse.Namespace) -> int:
-    from .table import describe, read_table
-    print(describe(read_table(args.table)))
+    from .table import describe, read_table, status_map
+    table = read_table(args.table)
+    print(describe(table))
+    if args.map:
+        print(status_map(table))
     return EXIT_OK
 
 
@@ -256,8 +266,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--json', action='store_true', help='print the result as JSON')
     p.set_defaults(command=_cmd_settle)
 
-    p = sub.add_parser('info', help='describe a table file')
+    p = sub.add_parser('info', help='describe a table file: cells, continuity, failures')
     p.add_argument('table', type=Path)
+    p.add_argument('--map', action='store_true',
+                   help='also print a map of every cell by how its settle ended')
     p.set_defaults(command=_cmd_info)
 
     p = sub.add_parser('lookup', help='interpolate a table at one attitude')
@@ -293,9 +305,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _register_build_commands(sub: Any) -> None:
-    """`build` and `synth` live with the knee model (kneeseat_core.build)."""
+    """`build` and `synth` live with the knee model (kneeseat_core.build), `verify` with the
+    referee (kneeseat_core.verify)."""
     from .build import register_commands
+    from .verify import register_command
     register_commands(sub)
+    register_command(sub, _vector3)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -8,7 +8,8 @@ over a small state object (`_Climb`):
 - `choose`: the contacts at the current pose are grouped into patches (one mean point
   and normal each); each patch's depth gradient says how much depth a unit move gains
   there, and the steepest move that gains at every patch is the minimum-norm point of
-  their convex hull (D1). A norm at or below the slope `SLOPE` means the contacts balance.
+  their convex hull (D1). A slope that could not gain one resolution across the whole
+  envelope counts as flat: the contacts balance.
 - `move`: a line search along that direction. The move is accepted while it does not
   lose depth beyond the contact tolerance; its length grows (doubles) while the slope
   measured at the new pose stays above half the slope at the old one and is cut to the
@@ -32,14 +33,15 @@ import math
 import numpy as np
 
 from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
+from .status import Status
 from .typed import Floats, Pose
 
-__all__ = ['run_climb', 'SLOPE']
+__all__ = ['run_climb']
 
-# Depth gained per metre of lateral motion at or below which the contacts count as balanced.
-SLOPE = 1e-3
-# A patch whose depth gradient is at most this long sits at its own crest (D1b).
-CREST = 2.0 * SLOPE
+# A move must deliver this share of the gain its slope promised, measured, or it is undone.
+PROMISE = 0.25
+# The finest contact tolerance a move measures its gain with, in resolutions.
+FINEST_TOL = 1.0 / 256.0
 # Probe scales, in finest moves (the finest move: one resolution of slide, or a spin
 # whose arc at the farthest vertex is one rotation resolution).
 PROBE_SCALES = (1.0, 4.0, 16.0)
@@ -87,12 +89,14 @@ class _Climb:
     floor: Contacts            # contact patches at `touching`
     arm: float                 # m of arc per radian of spin (the farthest vertex)
     tol: float                 # exact-contact tolerance along Δ (m)
+    flat: float                # slope at or below which the contacts count as balanced
     finest: float              # the finest move (m of slide or arc)
     step: float                # length of the next move (m)
     best: float                # deepest depth reached so far (m along Δ)
     learned: Contacts          # blocking patches taught by a rejected move
     proof_checks: int = 0
     stalled_at: Pose | None = None   # where the climb last ran out of moves
+    ended: tuple[int, str] | None = None   # (Status code, reason) once the climb must stop
 
     def _moved_since_stall(self) -> bool:
         """True unless the pose is within one finest move of where the climb last stalled."""
@@ -167,7 +171,7 @@ class _Climb:
                 return None
             d = self._envelope_mask(_min_norm_point(grads))
             norm = float(np.linalg.norm(d))
-            if norm > SLOPE:
+            if norm > self.flat:
                 direction = d / norm
                 slope = float(np.min(grads @ direction))
                 if slope > 0.0:
@@ -185,7 +189,7 @@ class _Climb:
         grads = self.gradients(facing)
         if len(grads) < 2 or not s.free[0]:
             return None
-        flat = np.linalg.norm(grads, axis=1) <= CREST
+        flat = np.linalg.norm(grads, axis=1) <= 2.0 * self.flat
         if int(flat.sum()) != 1:
             return None
         lever = np.cross(s.push, facing.points[flat][0] - s.centre(self.pose))
@@ -197,7 +201,7 @@ class _Climb:
         spin /= norm
         for direction in (spin, -spin):
             slope = float(np.min(grads[~flat] @ direction))
-            if slope > SLOPE:
+            if slope > self.flat:
                 return direction, slope
         return None
 
@@ -241,38 +245,78 @@ class _Climb:
             length = min(length, max(room * self.arm / abs(direction[2]), 0.0))
         return length
 
-    def move(self, direction: Floats, slope: float) -> str | None:
-        """One line-search step along `direction`; returns an end reason or None."""
+    def move(self, direction: Floats, slope: float) -> None:
+        """One line-search step along `direction` (sets `ended` when the climb must stop)."""
         s = self.search
         length = self._limit_to_envelope(direction, self.step)
         if length < 0.25 * self.finest:
             self.step = 0.0
-            return None
+            return
+        promised = length * slope
+        # measure the gain about as finely as the promise: a gain of a few micrometres is
+        # checked to a fraction of a micrometre, a millimetre to a quarter of a resolution
+        tau = min(self.tol, max(0.25 * promised, FINEST_TOL * s.params.resolution_m))
+        width = self._narrow(tau)
         target = s.lateral(self.pose, length * direction, self.arm)
-        bracket = s.touch(target, length * slope, self.tol)
+        bracket = s.touch(target, promised, tau)
         if bracket is None:
-            return LOST_CONTACT
+            self.ended = (Status.LOST, LOST_CONTACT)
+            return
         depth = s.depth(bracket.free)
-        floor = s.patches(bracket.touching)
+        gain = depth - s.depth(self.pose)
+        floor = self._floor_at(bracket.free)
         grads = self.gradients(floor, bracket.free)
         new_slope = float(np.min(grads @ direction)) if len(grads) else slope
-        if depth < self.best - self.tol:
-            # lost depth: the move met a contact the patches did not know (D2: learn it, so
-            # that the next direction respects it) or overshot the crest; shorten it
-            blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
-            facing = s.facing(floor, s.push)
-            self.learned = self.learned + Contacts(facing.points[blocking],
-                                                   facing.normals[blocking])
+        if depth < self.best - self.tol or gain < PROMISE * promised - tau - width:
+            # the move lost depth (it met a contact the patches did not know: D2, learn it
+            # so that the next direction respects it) or kept less than its promise (past
+            # the crest, or the normals promise a slope the surfaces do not have): shorten
+            if gain < -(tau + width):
+                blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
+                facing = s.facing(floor, s.push)
+                self.learned = self.learned + Contacts(facing.points[blocking],
+                                                       facing.normals[blocking])
             self.step = length * min(self._crest(slope, new_slope, shrink=0.25), 0.5)
-            return None
-        self.pose, self.touching, self.floor = bracket.free, bracket.touching, floor
-        self.learned = Contacts.empty()
-        self.best = max(self.best, depth)
+            return
+        self._arrive(bracket, floor)
         if new_slope >= 0.5 * slope:
             self.step = min(2.0 * length, MAX_MOVE_STEPS * s.params.step_m)
         else:
             self.step = length * self._crest(slope, new_slope, shrink=0.25)
-        return s.beyond_envelope(self.pose) if not s.params.envelope_holds else None
+
+    def _floor_at(self, free: Pose) -> Contacts:
+        """The contact patches within the contact tolerance of the free pose `free` (the
+        near-active set, whatever precision the pose itself was measured to)."""
+        s = self.search
+        return s.patches(translated(free, self.tol * s.push))
+
+    def _narrow(self, tau: float) -> float:
+        """Narrow the current pose's contact bracket to at most `tau` (the patches stay);
+        return its width."""
+        s = self.search
+        lo, hi = 0.0, s.depth(self.touching) - s.depth(self.pose)
+        if hi <= tau:
+            return hi
+        while hi - lo > tau:
+            mid = 0.5 * (lo + hi)
+            if s.collides(translated(self.pose, mid * s.push)):
+                hi = mid
+            else:
+                lo = mid
+        self.touching = translated(self.pose, hi * s.push)
+        self.pose = translated(self.pose, lo * s.push)
+        self.best = max(self.best, s.depth(self.pose))
+        return hi - lo
+
+    def _arrive(self, bracket: Bracket, floor: Contacts) -> None:
+        """Take the pose of `bracket`; outside the search envelope the climb ends."""
+        s = self.search
+        self.pose, self.touching, self.floor = bracket.free, bracket.touching, floor
+        self.learned = Contacts.empty()
+        self.best = max(self.best, s.depth(self.pose))
+        outside = None if s.params.envelope_holds else s.beyond_envelope(self.pose)
+        if outside:
+            self.ended = (Status.ENVELOPE, outside)
 
     @staticmethod
     def _crest(slope: float, new_slope: float, shrink: float) -> float:
@@ -281,9 +325,9 @@ class _Climb:
             return 1.0
         return min(max(slope / (slope - new_slope), shrink), 1.0)
 
-    def prove(self) -> bool | str:
-        """D5: probe around the pose; True when a probe gained (and was followed), False at
-        rest, or an end reason (a probe lost contact)."""
+    def prove(self) -> bool:
+        """D5: probe around the pose; True when a probe gained (and was followed, or the
+        climb ended), False at rest."""
         s = self.search
         lift = 0.5 * s.params.resolution_m
         checks_before = s.pair.checks
@@ -301,20 +345,25 @@ class _Climb:
                     cand = s.lateral(self.pose, length * d, self.arm)
                     if s.collides(translated(cand, lift * s.push)):
                         continue
-                    return self._follow(d, length, lift)
+                    self._follow(d, length, lift)
+                    return True
         finally:
             self.proof_checks += s.pair.checks - checks_before
         return False
 
-    def _follow(self, direction: Floats, length: float, lift: float) -> bool | str:
-        """A probe gained: follow its direction outward while it keeps gaining."""
+    def _follow(self, direction: Floats, length: float, lift: float) -> None:
+        """A probe gained: follow its direction outward while it keeps gaining (a pattern
+        move), and continue from the best pose found."""
         s = self.search
         best: Bracket | None = None
         while True:
             target = s.lateral(self.pose, length * direction, self.arm)
             bracket = s.touch(translated(target, lift * s.push), 0.0, self.tol)
             if bracket is None:
-                return LOST_CONTACT if best is None else self._adopt(best)
+                if best is None:
+                    self.ended = (Status.LOST, LOST_CONTACT)
+                    return
+                break
             if best is not None and s.depth(bracket.free) <= s.depth(best.free) + self.tol:
                 break
             best = bracket
@@ -322,15 +371,8 @@ class _Climb:
             if grown <= length or grown > MAX_MOVE_STEPS * s.params.step_m:
                 break
             length = grown
-        return self._adopt(best)
-
-    def _adopt(self, bracket: Bracket) -> bool | str:
-        s = self.search
-        self.pose, self.touching = bracket.free, bracket.touching
-        self.floor, self.learned = s.patches(bracket.touching), Contacts.empty()
-        self.best = max(self.best, s.depth(self.pose))
+        self._arrive(best, self._floor_at(best.free))
         self.step = max(self.step, 2.0 * self.finest)
-        return s.beyond_envelope(self.pose) if not s.params.envelope_holds else True
 
     def on_boundary(self) -> str | None:
         """Which envelope bound the pose rests on, if any."""
@@ -351,34 +393,26 @@ def run_climb(search: Search, bracket: Bracket) -> SettleResult:
         else p.resolution_m / arm
     tol = p.resolution_m / 4.0
     finest = min(p.resolution_m, rot_res * arm)
+    # a slope that cannot gain one resolution across the whole envelope is flat
+    flat = p.resolution_m / max(p.max_slide_m, p.max_spin_rad * arm)
     climb = _Climb(search, bracket.free, bracket.touching, search.patches(bracket.touching),
-                   arm, tol, finest, p.step_m, search.depth(bracket.free), Contacts.empty())
-    while search.iterations < p.max_iterations:
+                   arm, tol, flat, finest, p.step_m, search.depth(bracket.free),
+                   Contacts.empty())
+    while climb.ended is None and search.iterations < p.max_iterations:
         search.iterations += 1
         chosen = climb.choose() if climb.step >= 0.25 * finest else None
         if chosen is None:
             chosen = climb.resume()
-        if chosen is None:
-            outcome = climb.prove()
-            if outcome is False:
-                bound = climb.on_boundary() if p.envelope_holds else None
-                if bound:
-                    return search.result(
-                        climb.pose, True, f'rest on the envelope boundary ({bound}): nothing '
-                        'inside the envelope gains more than the resolution along the push',
-                        climb.floor, constrained=True, proof_checks=climb.proof_checks)
-                return search.result(
-                    climb.pose, True, 'rest: no slide, spin about the push or combination, '
-                    'short or long, gains more than the resolution along the push',
-                    climb.floor, proof_checks=climb.proof_checks)
-            if isinstance(outcome, str):
-                return search.result(climb.pose, False, outcome, climb.floor,
-                                     proof_checks=climb.proof_checks)
-            continue
-        end = climb.move(*chosen)
-        if end is not None:
-            return search.result(climb.pose, False, end, climb.floor,
-                                 proof_checks=climb.proof_checks)
-    return search.result(climb.pose, False, f'iteration cap ({p.max_iterations}) reached '
-                         'before rest was verified', climb.floor,
+        if chosen is not None:
+            climb.move(*chosen)
+        elif not climb.prove():
+            bound = climb.on_boundary() if p.envelope_holds else None
+            climb.ended = (
+                (Status.CONSTRAINED, f'rest on the envelope boundary ({bound}): nothing inside '
+                 'the envelope gains more than the resolution along the push') if bound else
+                (Status.REST, 'rest: no slide, spin about the push or combination, short or '
+                 'long, gains more than the resolution along the push'))
+    status, reason = climb.ended or (
+        Status.CAP, f'iteration cap ({p.max_iterations}) reached before rest was verified')
+    return search.result(climb.pose, status, reason, climb.floor,
                          proof_checks=climb.proof_checks)

@@ -13,6 +13,14 @@ make: a patella's height along the groove is held by its tendon, not by the push
 onto the sagittally convex trochlea it would otherwise slide off the flange (tried on the
 total knee: with any fixed push it leaves the component within 10 degrees of flexion). The
 default knee's patella conforms to its trochlea and needs no lock.
+
+Search envelope: a settle may slide a body at most `settle.max_slide_m` across its push and
+spin it at most `settle.max_spin_deg` about it, measured from the body's *neutral pose* at
+the cell (`neutral_pose`: the mesh as delivered, turned by A); a cell whose rest lies
+farther is "not converged" - geometry alone has no rest near that attitude. A body's own `envelope`
+({max_slide_m, max_spin_deg}) makes the envelope hold instead: it stands in for the soft
+tissue the patent leaves out, the body rests inside it, and a rest on its boundary is
+reported as constrained.
 """
 from __future__ import annotations
 
@@ -24,13 +32,13 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .errors import ConfigError
-from .geometry import KneeAxes, rotation_about, unit
+from .errors import ConfigError, SettleError
+from .geometry import KneeAxes, pose_from, rotation_about, unit
 from .meshes import UNIT_SCALE, Units
 from .settle import SettleParams
-from .typed import Floats
+from .typed import Floats, Pose
 
-__all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values']
+__all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values', 'neutral_pose']
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,6 +53,7 @@ class BodySpec:
     flexion_fraction: float = 1.0
     varus_fraction: float = 1.0
     locked_slide: tuple[float, float, float] | None = None   # neutral frame, turns with A
+    envelope: tuple[float, float] | None = None   # (max slide m, max spin rad) that holds
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -75,9 +84,13 @@ class KneeConfig:
         turn = self.attitude(body, flexion_rad, varus_rad)
         push = turn @ np.asarray(body.push)
         lock = None if body.locked_slide is None else turn @ np.asarray(body.locked_slide)
-        return replace(self.settle, push=(float(push[0]), float(push[1]), float(push[2])),
-                       locked_slide=None if lock is None else
-                       (float(lock[0]), float(lock[1]), float(lock[2])))
+        params = replace(self.settle, push=(float(push[0]), float(push[1]), float(push[2])),
+                         locked_slide=None if lock is None else
+                         (float(lock[0]), float(lock[1]), float(lock[2])))
+        if body.envelope is not None:
+            params = replace(params, max_slide_m=body.envelope[0],
+                             max_spin_rad=body.envelope[1], envelope_holds=True)
+        return params
 
     def metadata(self) -> dict[str, Any]:
         """The config as plain JSON-able data, with resolved absolute mesh paths."""
@@ -92,6 +105,12 @@ class KneeConfig:
         return out
 
 
+def neutral_pose(attitude: Floats) -> Pose:
+    """(4, 4) a body as delivered, turned by its `attitude` at a cell: the anchor its search
+    envelope is measured from."""
+    return pose_from(attitude, np.zeros(3))
+
+
 def _spec_dict(spec: BodySpec) -> dict[str, Any]:
     d = asdict(spec)
     d['mesh'] = str(spec.mesh)
@@ -101,11 +120,12 @@ def _spec_dict(spec: BodySpec) -> dict[str, Any]:
 
 _TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle'}
 _BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction',
-              'varus_fraction', 'locked_slide'}
+              'varus_fraction', 'locked_slide', 'envelope'}
+_ENVELOPE_KEYS = {'max_slide_m', 'max_spin_deg'}
 _REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
 _GRID_KEYS = {'flexion_deg', 'varus_deg'}
 _SETTLE_KEYS = {'step_m', 'resolution_m', 'rotation_step_deg', 'rotation_resolution_deg',
-                'max_iterations', 'max_slide_m', 'method'}
+                'max_iterations', 'max_slide_m', 'max_spin_deg', 'method'}
 
 
 def _check_keys(data: Any, allowed: set[str], where: str, required: set[str]) -> None:
@@ -149,7 +169,7 @@ def _vector(value: Any, where: str) -> tuple[float, float, float]:
     return float(vec[0]), float(vec[1]), float(vec[2])
 
 
-def _fraction(value: Any, where: str) -> float:
+def _number(value: Any, where: str) -> float:
     if not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ConfigError(f'{where} must be a number, got {value!r}')
     return float(value)
@@ -180,32 +200,51 @@ def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
         return spec
     return BodySpec(spec.name, spec.frame, spec.mesh, spec.display_mesh,
                     push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
-                    flexion_fraction=_fraction(data.get('flexion_fraction', 1.0),
-                                               f'{where}.flexion_fraction'),
-                    varus_fraction=_fraction(data.get('varus_fraction', 1.0),
-                                             f'{where}.varus_fraction'),
+                    flexion_fraction=_number(data.get('flexion_fraction', 1.0),
+                                             f'{where}.flexion_fraction'),
+                    varus_fraction=_number(data.get('varus_fraction', 1.0),
+                                           f'{where}.varus_fraction'),
                     locked_slide=(None if data.get('locked_slide') is None else
-                                  _vector(data['locked_slide'], f'{where}.locked_slide')))
+                                  _vector(data['locked_slide'], f'{where}.locked_slide')),
+                    envelope=(None if data.get('envelope') is None else
+                              _envelope(data['envelope'], f'{where}.envelope')))
+
+
+def _envelope(data: Any, where: str) -> tuple[float, float]:
+    """A body's envelope that holds: (max slide m, max spin rad), both required."""
+    _check_keys(data, _ENVELOPE_KEYS, where, _ENVELOPE_KEYS)
+    slide = _number(data['max_slide_m'], f'{where}.max_slide_m')
+    spin = _number(data['max_spin_deg'], f'{where}.max_spin_deg')
+    if not 0.0 < slide <= 0.1:
+        raise ConfigError(f'{where}.max_slide_m={slide:g} must be in (0, 0.1] m')
+    if not 0.0 < spin <= 180.0:
+        raise ConfigError(f'{where}.max_spin_deg={spin:g} must be in (0, 180] degrees')
+    return slide, math.radians(spin)
+
+
+_DEFAULTS = SettleParams()
 
 
 def _settle_params(data: Any) -> SettleParams:
     _check_keys(data, _SETTLE_KEYS, 'settle', set())
     try:
         params = SettleParams(
-            step_m=float(data.get('step_m', 1e-3)),
-            resolution_m=float(data.get('resolution_m', 1e-4)),
+            step_m=float(data.get('step_m', _DEFAULTS.step_m)),
+            resolution_m=float(data.get('resolution_m', _DEFAULTS.resolution_m)),
             rotation_step_rad=(None if data.get('rotation_step_deg') is None
                                else math.radians(float(data['rotation_step_deg']))),
             rotation_resolution_rad=(None if data.get('rotation_resolution_deg') is None
                                      else math.radians(float(data['rotation_resolution_deg']))),
-            max_iterations=int(data.get('max_iterations', 500)),
-            max_slide_m=float(data.get('max_slide_m', 0.02)),
+            max_iterations=int(data.get('max_iterations', _DEFAULTS.max_iterations)),
+            max_slide_m=float(data.get('max_slide_m', _DEFAULTS.max_slide_m)),
+            max_spin_rad=(_DEFAULTS.max_spin_rad if data.get('max_spin_deg') is None
+                          else math.radians(float(data['max_spin_deg']))),
             method=data.get('method', 'default'))
     except (TypeError, ValueError) as err:
         raise ConfigError(f'settle: {err}') from None
     try:
         params.check()
-    except Exception as err:  # SettleError: re-label as a config problem
+    except SettleError as err:  # re-label as a config problem
         raise ConfigError(f'settle: {err}') from None
     return params
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from .geometry import rotation_about, TOL
 from .search import Bracket, Contacts, LOST_CONTACT, rotated, Search, SettleResult, translated
+from .status import Status
 from .typed import Floats, Pose
 
 __all__ = ['run_patent']
@@ -82,16 +83,16 @@ def run_patent(search: Search, bracket: Bracket) -> SettleResult:
         search.iterations += 1
         key = np.round(pose[:3, :] / (p.resolution_m * 0.5)).astype(np.int64).tobytes()
         if key in seen and search.iterations - seen[key] > 1:
-            return search.result(pose, False, 'wedged: the slide and the rotation are both '
-                                 'blocked and the method cycles between the same poses',
+            return search.result(pose, Status.WEDGED, 'wedged: the slide and the rotation are '
+                                 'both blocked and the method cycles between the same poses',
                                  contacts)
         seen[key] = search.iterations
         facing = search.facing(contacts, motion)
         if len(facing.points) == 0:
             facing = search.facing(contacts, search.push)
         if len(facing.points) == 0:
-            return search.result(pose, False, 'no usable contact: every normal is back-facing',
-                                 contacts)
+            return search.result(pose, Status.FAILED, 'no usable contact: every normal is '
+                                 'back-facing', contacts)
         found = _torque_centre(search, facing)
         if found is not None:
             centre, sign = found
@@ -119,7 +120,7 @@ def run_patent(search: Search, bracket: Bracket) -> SettleResult:
             if p.locked_slide is not None:
                 slide -= (slide @ search.e1) * search.e1
             if np.linalg.norm(slide) < p.resolution_m:
-                return search.result(pose, True, 'stable: the resultant of the projected '
+                return search.result(pose, Status.REST, 'stable: the resultant of the projected '
                                      'normals is below the resolution', facing)
             base = pose
 
@@ -136,10 +137,11 @@ def run_patent(search: Search, bracket: Bracket) -> SettleResult:
         # a motion without collision: translate along Δ again
         dropped = search.drop(pose, p.resolution_m)
         if dropped is None:
-            return search.result(pose, False, LOST_CONTACT, contacts)
+            return search.result(pose, Status.LOST, LOST_CONTACT, contacts)
         pose, contacts = dropped.free, search.contacts(dropped.touching)
         motion = search.push
         too_far = search.beyond_envelope(pose)
         if too_far:
-            return search.result(pose, False, too_far, contacts)
-    return search.result(pose, False, f'iteration cap ({p.max_iterations}) reached', contacts)
+            return search.result(pose, Status.ENVELOPE, too_far, contacts)
+    return search.result(pose, Status.CAP, f'iteration cap ({p.max_iterations}) reached',
+                         contacts)

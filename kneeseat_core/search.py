@@ -20,6 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from .collision import CollisionPair, RigidBody
 from .errors import SettleError
 from .geometry import rotation_about, unit
+from .status import Status
 from .typed import Floats, Pose
 
 __all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'Search', 'Bracket',
@@ -28,6 +29,7 @@ __all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'Search', 'Brac
 log = logging.getLogger('kneeseat_core.settle')
 
 Method = Literal['default', 'patent']
+
 
 LOST_CONTACT = ('lost contact: the body slid off the edge of the fixed body without finding '
                 'rest along this push')
@@ -116,8 +118,13 @@ class SettleResult:
     elapsed_s: float
     fcl_s: float                # part of elapsed_s spent inside python-fcl (s)
     backed_out_m: float = 0.0   # distance the start was backed out along -Δ
-    constrained: bool = False   # a rest held by the envelope (envelope_holds), not geometry
+    status: int = Status.REST   # `Status` code
     proof_checks: int = 0       # collision queries spent proving rest (default method)
+
+    @property
+    def constrained(self) -> bool:
+        """A rest held by the envelope (`envelope_holds`), not by the geometry alone."""
+        return self.status == Status.CONSTRAINED
 
 
 def translated(pose: Pose, v: Floats) -> Pose:
@@ -363,12 +370,13 @@ class Search:
                 lo = mid
         return Bracket(translated(pose, lo * self.push), translated(pose, hi * self.push))
 
-    def result(self, pose: Pose, converged: bool, reason: str, contacts: Contacts,
-               constrained: bool = False, proof_checks: int = 0) -> SettleResult:
-        """Package the end of a settle."""
-        return SettleResult(pose, converged, reason, self.iterations, self.pair.checks,
-                            contacts, time.perf_counter() - self.started, self.pair.fcl_s,
-                            self.backed_out_m, constrained, proof_checks)
+    def result(self, pose: Pose, status: int, reason: str, contacts: Contacts,
+               proof_checks: int = 0) -> SettleResult:
+        """Package the end of a settle (`status`: a `Status` code)."""
+        return SettleResult(pose, status in (Status.REST, Status.CONSTRAINED), reason,
+                            self.iterations, self.pair.checks, contacts,
+                            time.perf_counter() - self.started, self.pair.fcl_s,
+                            self.backed_out_m, status, proof_checks)
 
 
 # Normals within a patch that spread more than this from its mean split it (a crease).

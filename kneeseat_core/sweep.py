@@ -19,10 +19,12 @@ value, so varus neighbours agree; independent flexion columns each kept their ow
 and disagreed by up to 2.6 deg (docs/tables.md).
 
 A warm start keeps the neighbour's spin about the push and its position relative to the
-joint (both turned by the change of attitude), backed off one step along the push. A cell
-whose warm-started settle does not converge (the chain drifted to where the push has no
-rest nearby) is settled once more from the cold start - the body as delivered, turned by
-the cell's attitude - and only a converged result seeds the next cell.
+joint (both turned by the change of attitude), backed off one step along the push. Every
+cell's search envelope is measured from its neutral pose - the body as delivered, turned by
+the cell's attitude (`knee.neutral_pose`) - whatever the chain carried in, so a chain
+cannot drift farther from the joint than the envelope. A cell whose warm-started settle
+does not converge is settled once more from the cold start (the neutral pose backed off one
+step) and only a converged result seeds the next cell.
 Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`. The
 spec carries each mesh's SHA-256, so a worker that cannot read the paths (a remote Dask
 worker) finds the bytes shipped to it by content (`register_mesh_copy`, kneeseat_core/cluster.py),
@@ -45,9 +47,10 @@ import numpy as np
 from .collision import RigidBody
 from .errors import NoContactError, SettleError
 from .geometry import pose_from, quat_from_matrix
-from .knee import KneeConfig
+from .knee import KneeConfig, neutral_pose
 from .meshes import load_mesh
 from .settle import settle, SettleParams
+from .status import Status
 from .table import file_sha256
 from .typed import Floats, Pose
 
@@ -131,6 +134,7 @@ class ChainResult:
     poses: Floats             # (n, 4, 4)
     converged: Floats         # (n,) bool
     iterations: Floats        # (n,) int
+    status: Floats            # (n,) int, `Status` codes
     collision_checks: int
     reasons: tuple[str, ...]
     elapsed_s: float
@@ -144,7 +148,7 @@ def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
 
 
 def cold_start(attitude: Floats, params: SettleParams) -> Pose:
-    """The body as delivered, turned by `attitude`, backed off one step along the push."""
+    """The neutral pose backed off one step along the push."""
     return pose_from(attitude, -params.step_m * np.asarray(params.push))
 
 
@@ -157,16 +161,19 @@ def run_chain(job: ChainJob) -> ChainResult:
     poses = np.empty((n, 4, 4))
     converged = np.zeros(n, dtype=bool)
     iterations = np.zeros(n, dtype=np.int64)
+    status = np.full(n, Status.FAILED, dtype=np.int8)
     reasons: list[str] = []
     checks = 0
     previous, previous_attitude = job.start, job.start_attitude
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
                            params.step_m)
+        anchor = neutral_pose(attitude)
         try:
-            result = settle(fixed, moving, start, params)
+            result = settle(fixed, moving, start, params, anchor)
             if not result.converged:       # the chain drifted: try the cold start once
-                retry = settle(fixed, moving, cold_start(attitude, params), params)
+                retry = settle(fixed, moving, cold_start(attitude, params), params, anchor)
+                checks += result.collision_checks
                 result = retry if retry.converged else result
         except (NoContactError, SettleError) as err:
             poses[i] = start
@@ -175,11 +182,12 @@ def run_chain(job: ChainJob) -> ChainResult:
         poses[i] = result.pose
         converged[i] = result.converged
         iterations[i] = result.iterations
+        status[i] = result.status
         checks += result.collision_checks
         reasons.append(result.reason)
         if result.converged:   # a failed cell never seeds its neighbours
             previous, previous_attitude = result.pose, attitude
-    return ChainResult(job.body, job.cells, poses, converged, iterations, checks,
+    return ChainResult(job.body, job.cells, poses, converged, iterations, status, checks,
                        tuple(reasons), time.perf_counter() - started)
 
 
@@ -191,6 +199,7 @@ class SweepResult:
     orientation_xyzw: Floats    # (B, F, V, 4)
     converged: Floats           # (B, F, V) bool
     iterations: Floats          # (B, F, V) int
+    status: Floats              # (B, F, V) int8, `Status` codes
     collision_checks: int
     wall_s: float
     mesh_sha256: tuple[str, ...]    # hex, of the meshes swept: reference then bodies
@@ -257,6 +266,7 @@ def sweep(config: KneeConfig, executor: Executor,
     poses = np.zeros((nb, nf, nv, 4, 4))
     converged = np.zeros((nb, nf, nv), dtype=bool)
     iterations = np.zeros((nb, nf, nv), dtype=np.int64)
+    status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
     failures: list[str] = []
     checks = 0
 
@@ -268,15 +278,15 @@ def sweep(config: KneeConfig, executor: Executor,
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
                         start, start_attitude)
 
-    def collect(futures: Iterable[Future]) -> list[ChainResult]:
+    def collect(futures: Iterable[Future]) -> None:
         nonlocal checks
-        done = []
         for fut in as_completed(list(futures)):
             res: ChainResult = fut.result()
             for k, (f, v) in enumerate(res.cells):
                 poses[res.body, f, v] = res.poses[k]
                 converged[res.body, f, v] = res.converged[k]
                 iterations[res.body, f, v] = res.iterations[k]
+                status[res.body, f, v] = res.status[k]
                 if not res.converged[k] and len(failures) < 5:
                     failures.append(f'{config.bodies[res.body].name} flexion '
                                     f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}:'
@@ -284,8 +294,6 @@ def sweep(config: KneeConfig, executor: Executor,
             checks += res.collision_checks
             if progress:
                 progress(len(res.cells))
-            done.append(res)
-        return done
 
     varus_free = [abs(b.varus_fraction) < 1e-12 for b in config.bodies]
     # 1. centre cells, cold
@@ -319,8 +327,9 @@ def sweep(config: KneeConfig, executor: Executor,
             poses[b] = poses[b, :, v0:v0 + 1]
             converged[b] = converged[b, :, v0:v0 + 1]
             iterations[b] = iterations[b, :, v0:v0 + 1]
+            status[b] = status[b, :, v0:v0 + 1]
             if progress:           # the copies are cells of the table too
                 progress(nf * (nv - 1))
     return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
-                       converged, iterations, checks, time.perf_counter() - started,
+                       converged, iterations, status, checks, time.perf_counter() - started,
                        scene.mesh_sha256, tuple(failures))

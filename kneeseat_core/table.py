@@ -43,11 +43,12 @@ import numpy as np
 
 from .errors import ConfigError, KneeseatError, MeshError, OutOfRangeError, TableError
 from .geometry import KneeAxes, matrix_from_quat, TOL
+from .status import Status, STATUS_NAMES
 from .typed import Floats
 
 __all__ = ['SCHEMA', 'SUPPORTED_SCHEMAS', 'ARRAY_NAMES', 'METADATA_KEYS', 'PoseTable', 'Lookup',
            'write_table', 'read_table', 'with_hash', 'arrays_sha256', 'file_sha256',
-           'describe', 'lookup_json', 'export_csv', 'CSV_COLUMNS']
+           'describe', 'status_map', 'lookup_json', 'export_csv', 'CSV_COLUMNS']
 
 SCHEMA = 'kneeseat.table/1'
 SUPPORTED_SCHEMAS = (SCHEMA,)
@@ -193,6 +194,24 @@ class PoseTable:
     def sha256(self) -> str:
         """The arrays' SHA-256 (hex), as stored in the metadata."""
         return str(self.metadata['arrays_sha256'])
+
+    @property
+    def status(self) -> np.ndarray:
+        """(B, F, V) int: how each cell's settle ended (`kneeseat_core.status.Status`).
+
+        Read from the metadata; a table without codes (or with codes of another shape)
+        gives REST for converged cells and UNKNOWN for the others.
+        """
+        conv = np.asarray(self.converged, dtype=bool)
+        cells = self.metadata.get('cells')
+        if isinstance(cells, dict):
+            try:
+                codes = np.asarray(cells.get('status'), dtype=np.int64)
+            except (TypeError, ValueError):
+                codes = None
+            if codes is not None and codes.shape == conv.shape:
+                return codes
+        return np.where(conv, Status.REST, Status.UNKNOWN)
 
     def interpolate(self, flexion_rad: float, varus_rad: float,
                     out_of_range: Literal['clamp', 'drop'] = 'clamp') -> Lookup:
@@ -665,6 +684,69 @@ def describe(table: PoseTable) -> str:
     summary = meta.get('summary')
     if isinstance(summary, dict) and summary:
         lines.append('summary:    ' + ', '.join(f'{k}={v}' for k, v in summary.items()))
+    lines += _status_lines(table) + _continuity_lines(meta.get('continuity'))
+    return '\n'.join(lines)
+
+
+def _status_lines(table: PoseTable, listed: int = 5) -> list[str]:
+    """Cells by how their settle ended; the first few cells that did not converge."""
+    codes, conv = table.status, np.asarray(table.converged, dtype=bool)
+    deg_f, deg_v = np.degrees(table.flexion_rad), np.degrees(table.varus_rad)
+    lines = ['cells:']
+    for b, name in enumerate(table.bodies):
+        counts = np.bincount(codes[b].ravel(), minlength=len(STATUS_NAMES))
+        lines.append(f'  {name}: ' + ', '.join(f'{int(n)} {STATUS_NAMES.get(k, str(k))}'
+                                               for k, n in enumerate(counts) if n))
+        bad = np.argwhere(~conv[b])
+        for i, j in bad[:listed]:
+            lines.append(f'    not converged at flexion {deg_f[i]:g} varus {deg_v[j]:g}: '
+                         f'{STATUS_NAMES.get(int(codes[b, i, j]), "?")}')
+        if len(bad) > listed:
+            lines.append(f'    ... and {len(bad) - listed} more (kneeseat info --map)')
+    return lines
+
+
+def _continuity_lines(cont: Any, listed: int = 5) -> list[str]:
+    """The continuity summary a build stored (kneeseat_core.continuity)."""
+    if not isinstance(cont, dict) or not isinstance(cont.get('bodies'), dict):
+        return []
+
+    def between(pair: Any) -> str:
+        if not pair:
+            return ''
+        (fa, va), (fb, vb) = pair
+        return f' (flexion {fa:g} varus {va:g} -> flexion {fb:g} varus {vb:g})'
+
+    lines = [f'continuity: neighbour steps, bound {cont.get("bound_mm", "?")} mm / '
+             f'{cont.get("bound_deg", "?")} deg']
+    for name, entry in cont['bodies'].items():
+        pos, rot = entry.get('max_position_mm', {}), entry.get('max_rotation_deg', {})
+        over = entry.get('pairs_over_bound', {})
+        lines.append(f'  {name}: largest {pos.get("value", 0):.3f} mm{between(pos.get("between"))}'
+                     f', {rot.get("value", 0):.3f} deg{between(rot.get("between"))}; pairs over '
+                     f'the bound: flexion {over.get("flexion", 0)}, varus {over.get("varus", 0)}')
+    changes = cont.get('branch_changes') or []
+    lines.append(f'  branch changes (pairs over the bound, both cells at rest): {len(changes)}')
+    for change in changes[:listed]:
+        lines.append(f'    {change["body"]}{between(change["between"])}: '
+                     f'{change["position_mm"]:.3f} mm, {change["rotation_deg"]:.3f} deg')
+    if len(changes) > listed:
+        lines.append(f'    ... and {len(changes) - listed} more (in the metadata)')
+    return lines
+
+
+def status_map(table: PoseTable) -> str:
+    """A character map of every body's cells (rows flexion, columns varus) by status."""
+    marks = {Status.REST: '.', Status.CONSTRAINED: 'c', Status.ENVELOPE: 'E', Status.LOST: 'L',
+             Status.CAP: 'I', Status.WEDGED: 'W', Status.FAILED: 'F', Status.UNKNOWN: '?'}
+    codes = table.status
+    deg_f, deg_v = np.degrees(table.flexion_rad), np.degrees(table.varus_rad)
+    legend = ', '.join(f'{m} {STATUS_NAMES[k]}' for k, m in marks.items())
+    lines = [f'map: rows flexion, columns varus {deg_v[0]:g} to {deg_v[-1]:g} deg; {legend}']
+    for b, name in enumerate(table.bodies):
+        lines.append(f'{name}:')
+        for i in range(codes.shape[1]):
+            lines.append(f'{deg_f[i]:8g} ' + ''.join(marks.get(int(c), '?') for c in codes[b, i]))
     return '\n'.join(lines)
 
 

@@ -1,0 +1,23 @@
+"""How a settle ended: the codes a table stores per cell (part of the file format)."""
+from __future__ import annotations
+
+__all__ = ['Status', 'STATUS_NAMES']
+
+
+class Status:
+    """Settle end codes; REST and CONSTRAINED are converged, the others are not."""
+
+    REST = 0            # at rest (patent method: its stop rule)
+    CONSTRAINED = 1     # at rest on the boundary of an envelope that holds
+    ENVELOPE = 2        # the climb left the search envelope: no rest near the attitude
+    LOST = 3            # lost contact: slid off the fixed body
+    CAP = 4             # iteration cap
+    WEDGED = 5          # the patent method's slide/rotate cycle
+    FAILED = 6          # no contact along the push, or a start buried in the fixed body
+    UNKNOWN = 7         # not converged, reason not recorded (tables written before codes)
+
+
+STATUS_NAMES = {Status.REST: 'rest', Status.CONSTRAINED: 'rest on the envelope boundary',
+                Status.ENVELOPE: 'left the search envelope', Status.LOST: 'lost contact',
+                Status.CAP: 'iteration cap', Status.WEDGED: 'wedged (patent)',
+                Status.FAILED: 'failed to settle', Status.UNKNOWN: 'not converged'}
