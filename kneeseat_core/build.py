@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from .continuity import continuity
 from .errors import ConfigError
+from .geometry import quat_from_matrix
 from .knee import grid_values, KneeConfig, load_config
 from .status import STATUS_NAMES
 from .sweep import default_workers, process_executor, sweep, SweepResult
@@ -78,10 +79,19 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
                 'mesh_sha256': next(hashes),
                 'display_mesh': None if spec.display_mesh is None else str(spec.display_mesh)}
 
+    f0, v0 = result.anchor_cell
+    bodies = [body_meta(b) for b in config.bodies]
+    for entry, anchor in zip(bodies, result.anchors):
+        # where every cell's search envelope is measured from (kneeseat_core.sweep)
+        entry['envelope_anchor'] = {
+            'flexion_deg': math.degrees(config.flexion_rad[f0]),
+            'varus_deg': math.degrees(config.varus_rad[v0]),
+            'position': anchor[:3, 3].tolist(),
+            'orientation': quat_from_matrix(anchor[:3, :3]).tolist()}
     metadata = {
         'name': config.name,
         'reference': body_meta(config.reference),
-        'bodies': [body_meta(b) for b in config.bodies],
+        'bodies': bodies,
         'axes': {'flexion': config.axes.flexion.tolist(), 'varus': config.axes.varus.tolist(),
                  'long': config.axes.long.tolist()},
         'config': config.metadata(),

@@ -38,10 +38,12 @@ from .typed import Floats, Pose
 
 __all__ = ['run_climb']
 
-# A move must deliver this share of the gain its slope promised, measured, or it is undone.
-PROMISE = 0.25
+# A move must deliver this share of the gain its slope promised, measured to an eighth of
+# the promise, or it is undone (so a slope the normals promise but the surfaces do not have
+# is never followed far).
+PROMISE = 0.5
 # The finest contact tolerance a move measures its gain with, in resolutions.
-FINEST_TOL = 1.0 / 256.0
+FINEST_TOL = 1.0 / 1024.0
 # Probe scales, in finest moves (the finest move: one resolution of slide, or a spin
 # whose arc at the farthest vertex is one rotation resolution).
 PROBE_SCALES = (1.0, 4.0, 16.0)
@@ -255,7 +257,7 @@ class _Climb:
         promised = length * slope
         # measure the gain about as finely as the promise: a gain of a few micrometres is
         # checked to a fraction of a micrometre, a millimetre to a quarter of a resolution
-        tau = min(self.tol, max(0.25 * promised, FINEST_TOL * s.params.resolution_m))
+        tau = min(self.tol, max(0.125 * promised, FINEST_TOL * s.params.resolution_m))
         width = self._narrow(tau)
         target = s.lateral(self.pose, length * direction, self.arm)
         bracket = s.touch(target, promised, tau)

@@ -20,11 +20,13 @@ and disagreed by up to 2.6 deg (docs/tables.md).
 
 A warm start keeps the neighbour's spin about the push and its position relative to the
 joint (both turned by the change of attitude), backed off one step along the push. Every
-cell's search envelope is measured from its neutral pose - the body as delivered, turned by
-the cell's attitude (`knee.neutral_pose`) - whatever the chain carried in, so a chain
-cannot drift farther from the joint than the envelope. A cell whose warm-started settle
-does not converge is settled once more from the cold start (the neutral pose backed off one
-step) and only a converged result seeds the next cell.
+cell's search envelope is measured from the same place whatever the chain carried in: the
+body's rest at the centre cell carried to the cell's attitude (`carried`), or, for the
+centre cell itself and a body whose centre cell did not converge, the body as delivered
+turned by the attitude (`knee.neutral_pose`). So a chain cannot drift farther from the
+joint than the envelope. A cell whose warm-started settle does not converge is settled
+once more from the cold start (the neutral pose backed off one step) and only a converged
+result seeds the next cell.
 Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`. The
 spec carries each mesh's SHA-256, so a worker that cannot read the paths (a remote Dask
 worker) finds the bytes shipped to it by content (`register_mesh_copy`, kneeseat_core/cluster.py),
@@ -56,6 +58,7 @@ from .typed import Floats, Pose
 
 __all__ = ['SceneSpec', 'ChainJob', 'ChainResult', 'SweepResult', 'InlineExecutor',
            'run_chain', 'sweep', 'default_workers', 'process_executor', 'scene_bodies',
+           'carried', 'warm_start', 'cold_start',
            'register_mesh_copy', 'scene_builds']
 
 log = logging.getLogger(__name__)
@@ -123,6 +126,8 @@ class ChainJob:
     params: tuple[SettleParams, ...]        # per cell (push differs)
     start: Pose                             # (4, 4) pose the first cell starts from
     start_attitude: Floats                  # (3, 3) attitude `start` was settled at
+    anchor: Pose                            # (4, 4) envelope anchor, carried to each cell
+    anchor_attitude: Floats                 # (3, 3) attitude the anchor belongs to
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -140,11 +145,18 @@ class ChainResult:
     elapsed_s: float
 
 
+def carried(pose: Pose, from_attitude: Floats, attitude: Floats) -> Pose:
+    """`pose` (taken at `from_attitude`) turned by the change of attitude to `attitude`."""
+    turn = attitude @ from_attitude.T
+    return pose_from(turn @ pose[:3, :3], turn @ pose[:3, 3])
+
+
 def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
                push: Floats, back_off_m: float) -> Pose:
     """Start pose at a new attitude from a neighbour's equilibrium (module docstring)."""
-    turn = attitude @ previous_attitude.T
-    return pose_from(turn @ previous[:3, :3], turn @ previous[:3, 3] - back_off_m * push)
+    start = carried(previous, previous_attitude, attitude)
+    start[:3, 3] -= back_off_m * push
+    return start
 
 
 def cold_start(attitude: Floats, params: SettleParams) -> Pose:
@@ -168,7 +180,7 @@ def run_chain(job: ChainJob) -> ChainResult:
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
                            params.step_m)
-        anchor = neutral_pose(attitude)
+        anchor = carried(job.anchor, job.anchor_attitude, attitude)
         try:
             result = settle(fixed, moving, start, params, anchor)
             if not result.converged:       # the chain drifted: try the cold start once
@@ -203,6 +215,8 @@ class SweepResult:
     collision_checks: int
     wall_s: float
     mesh_sha256: tuple[str, ...]    # hex, of the meshes swept: reference then bodies
+    anchors: Floats                 # (B, 4, 4) envelope anchor of each body (module docstring)
+    anchor_cell: tuple[int, int]    # (flexion, varus) index the anchors belong to
     failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
 
     @property
@@ -270,13 +284,16 @@ def sweep(config: KneeConfig, executor: Executor,
     failures: list[str] = []
     checks = 0
 
+    centre_attitudes = [config.attitude(spec, flex[f0], var[v0]) for spec in config.bodies]
+    anchors = np.array([neutral_pose(a0) for a0 in centre_attitudes])
+
     def job(body: int, cells: Sequence[tuple[int, int]], start: Pose,
             start_attitude: Floats) -> ChainJob:
         spec = config.bodies[body]
         return ChainJob(scene, body, tuple(cells),
                         np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
-                        start, start_attitude)
+                        start, start_attitude, anchors[body], centre_attitudes[body])
 
     def collect(futures: Iterable[Future]) -> None:
         nonlocal checks
@@ -303,6 +320,9 @@ def sweep(config: KneeConfig, executor: Executor,
         centre_jobs.append(job(b, [(f0, v0)], cold_start(a0, config.params(spec, flex[f0],
                                                                            var[v0])), a0))
     collect([executor.submit(run_chain, j) for j in centre_jobs])
+    for b in range(nb):        # every other cell's envelope: from the centre rest, carried
+        if converged[b, f0, v0]:
+            anchors[b] = poses[b, f0, v0]
     # 2. spines: varus v0, flexion outward from f0
     spine_jobs = []
     for b, spec in enumerate(config.bodies):
@@ -332,4 +352,4 @@ def sweep(config: KneeConfig, executor: Executor,
                 progress(nf * (nv - 1))
     return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
                        converged, iterations, status, checks, time.perf_counter() - started,
-                       scene.mesh_sha256, tuple(failures))
+                       scene.mesh_sha256, anchors, (f0, v0), tuple(failures))

@@ -28,8 +28,9 @@ from .meshes import load_mesh
 from .referee import Envelope, Referee, Verdict
 from .search import SettleParams
 from .status import Status, STATUS_NAMES
+from .sweep import carried
 from .table import PoseTable, read_table
-from .typed import Pose
+from .typed import Floats, Pose
 
 __all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'register_command']
 
@@ -143,8 +144,19 @@ def _cell_problem(meta: dict[str, Any], body: int, flexion: float, varus: float
     spec, settle = resolved['bodies'][body], resolved['settle']
     axes = KneeAxes.from_vectors(meta['axes']['flexion'], meta['axes']['varus'],
                                  meta['axes']['long'])
-    turn = (rotation_about(axes.flexion, float(spec.get('flexion_fraction', 1.0)) * flexion)
-            @ rotation_about(axes.varus, float(spec.get('varus_fraction', 1.0)) * varus))
+
+    def attitude(f: float, v: float) -> Floats:
+        return (rotation_about(axes.flexion, float(spec.get('flexion_fraction', 1.0)) * f)
+                @ rotation_about(axes.varus, float(spec.get('varus_fraction', 1.0)) * v))
+
+    turn = attitude(flexion, varus)
+    anchor = neutral_pose(turn)
+    stored = meta['bodies'][body].get('envelope_anchor')
+    if isinstance(stored, dict):          # the sweep's anchor: the centre rest, carried
+        anchor = carried(pose_from(matrix_from_quat(np.asarray(stored['orientation'])),
+                                   np.asarray(stored['position'])),
+                         attitude(math.radians(stored['flexion_deg']),
+                                  math.radians(stored['varus_deg'])), turn)
     push = turn @ np.asarray(spec['push'], dtype=float)
     lock = None if spec.get('locked_slide') is None else \
         turn @ np.asarray(spec['locked_slide'], dtype=float)
@@ -157,7 +169,7 @@ def _cell_problem(meta: dict[str, Any], body: int, flexion: float, varus: float
                           settle.get('max_slide_m', defaults.max_slide_m)),
         max_spin_rad=float(envelope[1] if envelope else
                            settle.get('max_spin_rad', defaults.max_spin_rad)))
-    return params, neutral_pose(turn)
+    return params, anchor
 
 
 def _judge_cells(job: _CellJob) -> list[CellVerdict]:
