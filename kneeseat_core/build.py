@@ -11,6 +11,7 @@ import logging
 import math
 import os
 from pathlib import Path
+import re
 import sys
 from typing import Any, Callable, Iterator
 
@@ -19,10 +20,11 @@ from tqdm import tqdm
 from .errors import ConfigError
 from .knee import grid_values, KneeConfig, load_config
 from .sweep import default_workers, process_executor, sweep, SweepResult
-from .table import PoseTable, write_table
+from .table import file_sha256, PoseTable, write_table
 
 __all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
-           'make_table', 'register_commands', 'executor_for']
+           'make_table', 'register_commands', 'executor_for', 'reason_class',
+           'backed_out_lines']
 
 log = logging.getLogger(__name__)
 
@@ -66,14 +68,28 @@ def executor_for(workers: int, scheduler: str | None) -> tuple[Executor, Callabl
     return executor, lambda: executor.shutdown(wait=True, cancel_futures=True)
 
 
+def reason_class(reason: str) -> str:
+    """A non-converged reason without its numbers, e.g. 'iteration cap (N) reached ...'."""
+    head = reason.split(': ', 2)
+    text = ': '.join(head[:2]) if head[0] == 'failed' and len(head) > 1 else head[0]
+    return re.sub(r'\d+(\.\d+)?', 'N', text).strip()
+
+
 def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
-    """Package a sweep result and its provenance as a `PoseTable`."""
+    """Package a sweep result and its provenance as a `PoseTable`.
+
+    Each body's metadata keeps `mesh`/`mesh_sha256` (its first collision mesh, as tables
+    always had) and lists every mesh in `meshes` and `display_meshes` ([{path, sha256}]).
+    """
     hashes = iter(result.mesh_sha256)   # taken by the sweep before it settled anything
 
     def body_meta(spec: Any) -> dict[str, Any]:
-        return {'name': spec.name, 'frame': spec.frame, 'mesh': str(spec.mesh),
-                'mesh_sha256': next(hashes),
-                'display_mesh': None if spec.display_mesh is None else str(spec.display_mesh)}
+        meshes = [{'path': str(m), 'sha256': next(hashes)} for m in spec.meshes]
+        return {'name': spec.name, 'frame': spec.frame, 'mesh': meshes[0]['path'],
+                'mesh_sha256': meshes[0]['sha256'], 'meshes': meshes,
+                'display_mesh': None if spec.display_mesh is None else str(spec.display_mesh),
+                'display_meshes': [{'path': str(m), 'sha256': file_sha256(m)}
+                                   for m in spec.display_meshes]}
 
     metadata = {
         'name': config.name,
@@ -90,9 +106,44 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
                     'wall_s': round(result.wall_s, 3),
                     'collision_checks': int(result.collision_checks)},
         'failures': list(result.failures),
+        'backed_out': _backed_out(config, result),
+        'nonconverged': _nonconverged(config, result),
     }
     return PoseTable(config.flexion_rad, config.varus_rad, result.position_m,
                      result.orientation_xyzw, result.converged, result.iterations, metadata)
+
+
+def _backed_out(config: KneeConfig, result: SweepResult) -> dict[str, Any]:
+    """Per body: cells whose start was in collision and backed out along -push, and how far."""
+    out: dict[str, Any] = {}
+    if result.backed_out_m is None:
+        return out
+    for b, spec in enumerate(config.bodies):
+        moved = result.backed_out_m[b][result.backed_out_m[b] > 0.0]
+        out[spec.name] = {'cells': int(moved.size),
+                          'max_mm': round(float(moved.max()) * 1e3, 3) if moved.size else 0.0}
+    return out
+
+
+def _nonconverged(config: KneeConfig, result: SweepResult) -> dict[str, Any]:
+    """Per body: [flexion_deg, varus_deg, reason class] of every non-converged cell."""
+    out: dict[str, Any] = {spec.name: [] for spec in config.bodies}
+    for b, f, v, reason in result.nonconverged:
+        out[config.bodies[b].name].append([round(math.degrees(config.flexion_rad[f]), 6),
+                                           round(math.degrees(config.varus_rad[v]), 6),
+                                           reason_class(reason)])
+    return out
+
+
+def backed_out_lines(table: PoseTable) -> list[str]:
+    """One line per body whose start was in collision at some cells (build summary)."""
+    lines = []
+    for name, entry in (table.metadata.get('backed_out') or {}).items():
+        if entry.get('cells'):
+            lines.append(f'  {name}: the start was in collision at {entry["cells"]} cells '
+                         f'(up to {entry["max_mm"]:g} mm deep); each was backed out along '
+                         'the push before settling')
+    return lines
 
 
 def build_table(config: KneeConfig, out: Path, executor: Executor,
@@ -167,6 +218,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
             totals['cells'] += s['cells']
             totals['converged'] += s['converged']
             totals['wall_s'] += s['wall_s']
+            for line in backed_out_lines(table):
+                print(line)
             for reason in table.metadata.get('failures', []):
                 print(f'  not converged: {reason}')
     if len(loaded) > 1:

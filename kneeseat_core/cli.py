@@ -192,17 +192,31 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _display_paths(entry: dict[str, Any], display: bool) -> list[str]:
+    """A metadata entry's display meshes when asked and recorded, else its collision meshes.
+
+    Reads tables written before multi-mesh bodies (`mesh`/`display_mesh` only) too.
+    """
+    from .table import mesh_entries
+    if display:
+        listed = [m['path'] for m in entry.get('display_meshes') or [] if isinstance(m, dict)]
+        if listed:
+            return listed
+        if entry.get('display_mesh'):
+            return [entry['display_mesh']]
+    return [path for path, _ in mesh_entries(entry)]
+
+
 def _table_meshes(table: Any, display: bool) -> dict[str, Any]:
-    """Meshes named in a table's metadata (display meshes preferred when asked)."""
-    from .meshes import load_mesh
+    """Meshes named in a table's metadata, one (combined) mesh per body.
+
+    A body with several meshes (e.g. a tibia's bone and menisci) is drawn as their union.
+    """
+    from .meshes import load_meshes
     meta = table.metadata
     units = meta.get('config', {}).get('units', 'm')
-    meshes = {meta['reference']['name']: load_mesh(
-        (display and meta['reference'].get('display_mesh')) or meta['reference']['mesh'], units)}
-    for body in meta['bodies']:
-        meshes[body['name']] = load_mesh((display and body.get('display_mesh')) or body['mesh'],
-                                         units)
-    return meshes
+    return {entry['name']: load_meshes(_display_paths(entry, display), units)
+            for entry in (meta['reference'], *meta['bodies'])}
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:

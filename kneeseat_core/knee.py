@@ -13,6 +13,16 @@ make: a patella's height along the groove is held by its tendon, not by the push
 onto the sagittally convex trochlea it would otherwise slide off the flange (tried on the
 total knee: with any fixed push it leaves the component within 10 degrees of flexion). The
 default knee's patella conforms to its trochlea and needs no lock.
+
+An optional `push_flexion_fraction` turns the push (and the locked slide) with
+push_flexion_fraction x flexion instead of the attitude's flexion_fraction x flexion: a
+patella's push is the resultant of its quadriceps and patellar-tendon pulls, which turns
+more slowly with flexion than the patella itself (docs/natural_knee.md).
+
+A body's `mesh` (and `display_mesh`) is a file name or a list of file names. The collision
+meshes of a body are combined into one rigid body (one BVH, contacts per triangle as for
+one mesh), e.g. a tibia carrying its cartilage and both menisci. `BodySpec.mesh` is the
+first of them; `BodySpec.meshes` holds them all.
 """
 from __future__ import annotations
 
@@ -35,7 +45,11 @@ __all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values']
 
 @dataclass(frozen=True, slots=True)
 class BodySpec:
-    """One body of the knee; `push` and fractions matter for moving bodies only."""
+    """One body of the knee; `push` and fractions matter for moving bodies only.
+
+    `mesh` and `display_mesh` are the first collision and display mesh; `meshes` and
+    `display_meshes` hold every one (filled from `mesh`/`display_mesh` when not given).
+    """
 
     name: str
     frame: str
@@ -45,6 +59,15 @@ class BodySpec:
     flexion_fraction: float = 1.0
     varus_fraction: float = 1.0
     locked_slide: tuple[float, float, float] | None = None   # neutral frame, turns with A
+    meshes: tuple[Path, ...] = ()
+    display_meshes: tuple[Path, ...] = ()
+    push_flexion_fraction: float | None = None   # None: the push turns with the attitude
+
+    def __post_init__(self) -> None:
+        if not self.meshes:
+            object.__setattr__(self, 'meshes', (self.mesh,))
+        if not self.display_meshes and self.display_mesh is not None:
+            object.__setattr__(self, 'display_meshes', (self.display_mesh,))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -66,13 +89,23 @@ class KneeConfig:
         return (rotation_about(self.axes.flexion, body.flexion_fraction * flexion_rad)
                 @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
 
+    def push_turn(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
+        """(3, 3) rotation that turns `body`'s neutral push and locked slide at a cell.
+
+        The attitude, unless the body has a `push_flexion_fraction` (module docstring).
+        """
+        if body.push_flexion_fraction is None:
+            return self.attitude(body, flexion_rad, varus_rad)
+        return (rotation_about(self.axes.flexion, body.push_flexion_fraction * flexion_rad)
+                @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
+
     def push(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3,) unit push direction of `body` at a grid cell, reference frame."""
-        return self.attitude(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+        return self.push_turn(body, flexion_rad, varus_rad) @ np.asarray(body.push)
 
     def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
         """Settle parameters for `body` at a grid cell."""
-        turn = self.attitude(body, flexion_rad, varus_rad)
+        turn = self.push_turn(body, flexion_rad, varus_rad)
         push = turn @ np.asarray(body.push)
         lock = None if body.locked_slide is None else turn @ np.asarray(body.locked_slide)
         return replace(self.settle, push=(float(push[0]), float(push[1]), float(push[2])),
@@ -96,12 +129,14 @@ def _spec_dict(spec: BodySpec) -> dict[str, Any]:
     d = asdict(spec)
     d['mesh'] = str(spec.mesh)
     d['display_mesh'] = None if spec.display_mesh is None else str(spec.display_mesh)
+    d['meshes'] = [str(m) for m in spec.meshes]
+    d['display_meshes'] = [str(m) for m in spec.display_meshes]
     return d
 
 
 _TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle'}
 _BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction',
-              'varus_fraction', 'locked_slide'}
+              'varus_fraction', 'locked_slide', 'push_flexion_fraction'}
 _REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
 _GRID_KEYS = {'flexion_deg', 'varus_deg'}
 _SETTLE_KEYS = {'step_m', 'resolution_m', 'rotation_step_deg', 'rotation_resolution_deg',
@@ -165,6 +200,19 @@ def _mesh_path(mesh_dir: Path, value: Any, where: str) -> Path:
     return path
 
 
+def _mesh_paths(mesh_dir: Path, value: Any, where: str) -> tuple[Path, ...]:
+    """A file name or a non-empty list of distinct file names -> paths."""
+    if not isinstance(value, list):
+        return (_mesh_path(mesh_dir, value, where),)
+    if not value:
+        raise ConfigError(f'{where} must be a file name or a non-empty list of file names, '
+                          'got []')
+    paths = tuple(_mesh_path(mesh_dir, v, f'{where}[{i}]') for i, v in enumerate(value))
+    if len(set(p.resolve() for p in paths)) != len(paths):
+        raise ConfigError(f'{where} lists a mesh twice ({value}); give each file once')
+    return paths
+
+
 def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
     _check_keys(data, _BODY_KEYS if moving else _REF_KEYS, where, {'name', 'mesh'})
     name = data['name']
@@ -172,20 +220,24 @@ def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
         raise ConfigError(f'{where}.name must be a simple identifier (letters, digits, _), '
                           f'got {name!r}')
     display = data.get('display_mesh')
-    spec = BodySpec(name=name, frame=str(data.get('frame', name)),
-                    mesh=_mesh_path(mesh_dir, data['mesh'], f'{where}.mesh'),
-                    display_mesh=None if display is None else
-                    _mesh_path(mesh_dir, display, f'{where}.display_mesh'))
+    meshes = _mesh_paths(mesh_dir, data['mesh'], f'{where}.mesh')
+    displays = () if display is None else _mesh_paths(mesh_dir, display,
+                                                      f'{where}.display_mesh')
+    spec = BodySpec(name=name, frame=str(data.get('frame', name)), mesh=meshes[0],
+                    display_mesh=displays[0] if displays else None, meshes=meshes,
+                    display_meshes=displays)
     if not moving:
         return spec
-    return BodySpec(spec.name, spec.frame, spec.mesh, spec.display_mesh,
-                    push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
-                    flexion_fraction=_fraction(data.get('flexion_fraction', 1.0),
-                                               f'{where}.flexion_fraction'),
-                    varus_fraction=_fraction(data.get('varus_fraction', 1.0),
-                                             f'{where}.varus_fraction'),
-                    locked_slide=(None if data.get('locked_slide') is None else
-                                  _vector(data['locked_slide'], f'{where}.locked_slide')))
+    push_fraction = data.get('push_flexion_fraction')
+    return replace(spec, push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
+                   flexion_fraction=_fraction(data.get('flexion_fraction', 1.0),
+                                              f'{where}.flexion_fraction'),
+                   varus_fraction=_fraction(data.get('varus_fraction', 1.0),
+                                            f'{where}.varus_fraction'),
+                   locked_slide=(None if data.get('locked_slide') is None else
+                                 _vector(data['locked_slide'], f'{where}.locked_slide')),
+                   push_flexion_fraction=(None if push_fraction is None else _fraction(
+                       push_fraction, f'{where}.push_flexion_fraction')))
 
 
 def _settle_params(data: Any) -> SettleParams:

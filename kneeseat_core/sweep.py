@@ -23,10 +23,13 @@ joint (both turned by the change of attitude), backed off one step along the pus
 whose warm-started settle does not converge (the chain drifted to where the push has no
 rest nearby) is settled once more from the cold start - the body as delivered, turned by
 the cell's attitude - and only a converged result seeds the next cell.
-Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`. The
-spec carries each mesh's SHA-256, so a worker that cannot read the paths (a remote Dask
-worker) finds the bytes shipped to it by content (`register_mesh_copy`, kneeseat_core/cluster.py),
-and a long-lived worker never reuses bodies of a mesh file that has since changed.
+Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`; a
+body made of several meshes is loaded as one rigid body. The parent validates every mesh
+once before the sweep (warnings such as an open cartilage sheet appear once per mesh), so
+workers load quietly. The spec carries each mesh file's SHA-256, so a worker that cannot
+read the paths (a remote Dask worker) finds the bytes shipped to it by content
+(`register_mesh_copy`, kneeseat_core/cluster.py), and a long-lived worker never reuses
+bodies of a mesh file that has since changed.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ import logging
 import math
 import multiprocessing
 import os
+from pathlib import Path
 import threading
 import time
 from typing import Callable, Iterable, Sequence
@@ -46,7 +50,7 @@ from .collision import RigidBody
 from .errors import NoContactError, SettleError
 from .geometry import pose_from, quat_from_matrix
 from .knee import KneeConfig
-from .meshes import load_mesh
+from .meshes import check_mesh_files, load_meshes
 from .settle import settle, SettleParams
 from .table import file_sha256
 from .typed import Floats, Pose
@@ -60,12 +64,24 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class SceneSpec:
-    """What a worker needs to rebuild the rigid bodies (small, picklable, hashable)."""
+    """What a worker needs to rebuild the rigid bodies (small, picklable, hashable).
 
-    reference_mesh: str
-    body_meshes: tuple[str, ...]
+    A body's meshes are one path, or a tuple of paths combined into one rigid body.
+    """
+
+    reference_mesh: str | tuple[str, ...]
+    body_meshes: tuple[str | tuple[str, ...], ...]
     units: str
-    mesh_sha256: tuple[str, ...] = ()   # hex, reference then bodies; () = paths only
+    mesh_sha256: tuple[str, ...] = ()   # hex, one per file of `paths()`; () = paths only
+
+    def groups(self) -> tuple[tuple[str, ...], ...]:
+        """The mesh files of each body: the reference first, then the moving bodies."""
+        return tuple((g,) if isinstance(g, str) else tuple(g)
+                     for g in (self.reference_mesh, *self.body_meshes))
+
+    def paths(self) -> tuple[str, ...]:
+        """Every mesh file, in body order (the order of `mesh_sha256`)."""
+        return tuple(p for g in self.groups() for p in g)
 
 
 _SCENES: dict[SceneSpec, tuple[RigidBody, tuple[RigidBody, ...]]] = {}
@@ -95,14 +111,17 @@ def _mesh_source(spec: SceneSpec, index: int, path: str) -> str:
 
 
 def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
-    """The rigid bodies of `spec`, built once per process and cached."""
+    """The rigid bodies of `spec`, built once per process and cached (loaded quietly)."""
     global _SCENE_BUILDS
     with _SCENES_LOCK:
         if spec not in _SCENES:
-            paths = (spec.reference_mesh,) + spec.body_meshes
-            bodies = tuple(RigidBody.from_mesh(load_mesh(_mesh_source(spec, i, p),
-                                                         spec.units))  # type: ignore[arg-type]
-                           for i, p in enumerate(paths))
+            groups, bodies_list, index = spec.groups(), [], 0
+            for group in groups:
+                sources = [_mesh_source(spec, index + k, p) for k, p in enumerate(group)]
+                index += len(group)
+                bodies_list.append(RigidBody.from_mesh(
+                    load_meshes(sources, spec.units, quiet=True)))  # type: ignore[arg-type]
+            bodies = tuple(bodies_list)
             _SCENES.clear()          # one scene per worker at a time keeps memory flat
             _SCENES[spec] = (bodies[0], bodies[1:])
             _SCENE_BUILDS += 1
@@ -134,6 +153,7 @@ class ChainResult:
     collision_checks: int
     reasons: tuple[str, ...]
     elapsed_s: float
+    backed_out_m: Floats | None = None   # (n,) how far each kept settle backed its start out
 
 
 def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
@@ -157,6 +177,7 @@ def run_chain(job: ChainJob) -> ChainResult:
     poses = np.empty((n, 4, 4))
     converged = np.zeros(n, dtype=bool)
     iterations = np.zeros(n, dtype=np.int64)
+    backed = np.zeros(n)
     reasons: list[str] = []
     checks = 0
     previous, previous_attitude = job.start, job.start_attitude
@@ -175,12 +196,13 @@ def run_chain(job: ChainJob) -> ChainResult:
         poses[i] = result.pose
         converged[i] = result.converged
         iterations[i] = result.iterations
+        backed[i] = getattr(result, 'backed_out_m', 0.0)
         checks += result.collision_checks
         reasons.append(result.reason)
         if result.converged:   # a failed cell never seeds its neighbours
             previous, previous_attitude = result.pose, attitude
     return ChainResult(job.body, job.cells, poses, converged, iterations, checks,
-                       tuple(reasons), time.perf_counter() - started)
+                       tuple(reasons), time.perf_counter() - started, backed)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -193,8 +215,11 @@ class SweepResult:
     iterations: Floats          # (B, F, V) int
     collision_checks: int
     wall_s: float
-    mesh_sha256: tuple[str, ...]    # hex, of the meshes swept: reference then bodies
+    mesh_sha256: tuple[str, ...]    # hex, of the mesh files swept (SceneSpec.paths order)
     failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
+    # (body, flexion index, varus index, reason) of every non-converged cell
+    nonconverged: tuple[tuple[int, int, int, str], ...] = field(default=())
+    backed_out_m: Floats | None = None  # (B, F, V) how far each cell's start was backed out
 
     @property
     def cells(self) -> int:
@@ -249,15 +274,18 @@ def sweep(config: KneeConfig, executor: Executor,
     started = time.perf_counter()
     flex, var = config.flexion_rad, config.varus_rad
     nb, nf, nv = len(config.bodies), len(flex), len(var)
-    meshes = (config.reference.mesh,) + tuple(b.mesh for b in config.bodies)
-    scene = SceneSpec(str(config.reference.mesh), tuple(str(b.mesh) for b in config.bodies),
-                      config.units, tuple(file_sha256(m) for m in meshes))
+    groups = [tuple(str(m) for m in spec.meshes) for spec in (config.reference, *config.bodies)]
+    scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
+                      tuple(file_sha256(Path(p)) for g in groups for p in g))
+    check_mesh_files(scene.paths(), config.units)   # once here; workers load quietly
     f0 = int(np.argmin(np.abs(flex)))
     v0 = int(np.argmin(np.abs(var)))
     poses = np.zeros((nb, nf, nv, 4, 4))
     converged = np.zeros((nb, nf, nv), dtype=bool)
     iterations = np.zeros((nb, nf, nv), dtype=np.int64)
+    backed = np.zeros((nb, nf, nv))
     failures: list[str] = []
+    reasons: dict[tuple[int, int, int], str] = {}
     checks = 0
 
     def job(body: int, cells: Sequence[tuple[int, int]], start: Pose,
@@ -277,6 +305,10 @@ def sweep(config: KneeConfig, executor: Executor,
                 poses[res.body, f, v] = res.poses[k]
                 converged[res.body, f, v] = res.converged[k]
                 iterations[res.body, f, v] = res.iterations[k]
+                if res.backed_out_m is not None:
+                    backed[res.body, f, v] = res.backed_out_m[k]
+                if not res.converged[k]:
+                    reasons[(res.body, f, v)] = res.reasons[k]
                 if not res.converged[k] and len(failures) < 5:
                     failures.append(f'{config.bodies[res.body].name} flexion '
                                     f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}:'
@@ -319,8 +351,13 @@ def sweep(config: KneeConfig, executor: Executor,
             poses[b] = poses[b, :, v0:v0 + 1]
             converged[b] = converged[b, :, v0:v0 + 1]
             iterations[b] = iterations[b, :, v0:v0 + 1]
+            backed[b] = backed[b, :, v0:v0 + 1]
+            for f in range(nf):
+                if (b, f, v0) in reasons:
+                    reasons.update({(b, f, v): reasons[(b, f, v0)] for v in range(nv)})
             if progress:           # the copies are cells of the table too
                 progress(nf * (nv - 1))
     return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
                        converged, iterations, checks, time.perf_counter() - started,
-                       scene.mesh_sha256, tuple(failures))
+                       scene.mesh_sha256, tuple(failures),
+                       tuple((b, f, v, r) for (b, f, v), r in sorted(reasons.items())), backed)
