@@ -78,7 +78,7 @@ def _fix_negative_values(argv: list[str], flags: set[str]) -> list[str]:
 
 _VALUE_FLAGS = {'--push', '--flexion-deg', '--varus-deg', '--rotation-step',
                 '--rotation-resolution', '--step', '--resolution', '--flexion-grid',
-                '--varus-grid'}
+                '--varus-grid', '--tibia-point', '--patella-point', '--angles'}
 
 
 # ---- settle --------------------------------------------------------------------------
@@ -237,6 +237,31 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_kinematics(args: argparse.Namespace) -> int:
+    from .kinematics import (DEFAULT_ANGLES_DEG, kinematics_markdown, knee_kinematics,
+                             plot_kinematics, read_reference, table_landmarks,
+                             write_kinematics_csv)
+    from .table import read_table
+    table = read_table(args.table)
+    names = dict(tibia=args.tibia, patella=args.patella)
+    marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,
+                            patella_point=args.patella_point, **names)
+    angles = args.angles if args.angles is not None else list(DEFAULT_ANGLES_DEG)
+    every = knee_kinematics(table, marks, side=args.side, **names)
+    chosen = knee_kinematics(table, marks, angles_deg=angles, side=args.side, **names)
+    reference = read_reference(args.reference) if args.reference else []
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path = write_kinematics_csv(every, args.out_dir / 'kinematics.csv')
+    md_path = args.out_dir / 'kinematics.md'
+    md_path.write_text(kinematics_markdown(chosen))
+    name = str(table.metadata.get('name') or args.table.stem)
+    png = plot_kinematics(every, args.out_dir / 'kinematics.png', title=name,
+                          reference=reference)
+    print(kinematics_markdown(chosen), end='')
+    print(f'wrote {csv_path}, {md_path}, {png}')
+    return EXIT_OK
+
+
 # ---- parser -----------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `kneeseat` (subcommands register their handler as `command`)."""
@@ -301,6 +326,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--implants', action='store_true',
                    help='draw the collision meshes even where display meshes exist')
     p.set_defaults(command=_cmd_render)
+
+    p = sub.add_parser('kinematics', help='secondary motions at varus 0 against flexion '
+                       '(CSV, Markdown table, PNG)')
+    p.add_argument('table', type=Path)
+    p.add_argument('--out-dir', type=Path, required=True,
+                   help='directory for kinematics.csv, kinematics.md and kinematics.png')
+    p.add_argument('--angles', type=_angles, metavar='DEG,...',
+                   help='knee flexion angles of the Markdown table, positive = flexed '
+                   '(default 0,15,30,45,60,75,90)')
+    p.add_argument('--side', choices=('right', 'left'), default='right', help='knee side')
+    p.add_argument('--tibia', default='tibia', help='tibia body name (default tibia)')
+    p.add_argument('--patella', default='patella', help='patella body name (default patella)')
+    p.add_argument('--tibia-point', type=_vector3, metavar='X,Y,Z',
+                   help='tibial landmark (m, tibia frame) instead of its mesh centroid')
+    p.add_argument('--patella-point', type=_vector3, metavar='X,Y,Z',
+                   help='patellar landmark (m, patella frame) instead of its mesh centroid')
+    p.add_argument('--reference', type=Path, metavar='CSV',
+                   help='published values to plot beside the table (source, quantity, '
+                   'knee_flexion_deg, value)')
+    p.set_defaults(command=_cmd_kinematics)
 
     _register_build_commands(sub)
     return parser
