@@ -220,8 +220,12 @@ def _table_meshes(table: Any, display: bool) -> dict[str, Any]:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from .plots import plot_table
+    from .plots import plot_convergence_map, plot_table
     from .table import read_table
+    if args.map:
+        out = plot_convergence_map(read_table(args.table), args.out)
+        print(f'wrote {out}')
+        return EXIT_OK
     out = plot_table(read_table(args.table), args.out, varus_deg=args.varus_deg)
     print(f'wrote {out}')
     return EXIT_OK
@@ -255,8 +259,15 @@ def _cmd_kinematics(args: argparse.Namespace) -> int:
     md_path = args.out_dir / 'kinematics.md'
     md_path.write_text(kinematics_markdown(chosen))
     name = str(table.metadata.get('name') or args.table.stem)
+    others = {}
+    for path in args.compare or []:
+        other = read_table(path)
+        other_marks = table_landmarks(other, side=args.side, tibia_point=args.tibia_point,
+                                      patella_point=args.patella_point, **names)
+        label = str(other.metadata.get('name') or path.stem)
+        others[label] = knee_kinematics(other, other_marks, side=args.side, **names)
     png = plot_kinematics(every, args.out_dir / 'kinematics.png', title=name,
-                          reference=reference)
+                          reference=reference, others=others)
     print(kinematics_markdown(chosen), end='')
     print(f'wrote {csv_path}, {md_path}, {png}')
     return EXIT_OK
@@ -316,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('table', type=Path)
     p.add_argument('--out', type=Path, required=True, help='output PNG')
     p.add_argument('--varus-deg', type=_angles, help='varus values for the curves, e.g. -10,0,10')
+    p.add_argument('--map', action='store_true',
+                   help='draw the map of non-converged cells and their reasons instead')
     p.set_defaults(command=_cmd_plot)
 
     p = sub.add_parser('render', help='draw the bones at several flexion angles (PNG)')
@@ -345,6 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--reference', type=Path, metavar='CSV',
                    help='published values to plot beside the table (source, quantity, '
                    'knee_flexion_deg, value)')
+    p.add_argument('--compare', type=Path, action='append', metavar='TABLE',
+                   help='another table to draw as a dashed line (repeatable)')
     p.set_defaults(command=_cmd_kinematics)
 
     _register_build_commands(sub)

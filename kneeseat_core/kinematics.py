@@ -367,9 +367,10 @@ def plot_kinematics(kin: KneeKinematics, out: Path, *, title: str,
     Args:
         kin: the table's kinematics (a line; non-converged points as red crosses).
         out: PNG path.
-        title: figure title.
+        title: figure title and the table's legend label.
         reference: rows of `read_reference` (one marker style per source).
-        others: more tables' kinematics to draw as dashed lines, by label.
+        others: more tables' kinematics to draw as dashed lines, by label (their
+            non-converged cells are left out of the line).
     """
     from .plots import DPI, MARKER_RGB, write_png
     quantities = [q for q in QUANTITIES if q in kin.values]
@@ -382,16 +383,17 @@ def plot_kinematics(kin: KneeKinematics, out: Path, *, title: str,
     style = {s: _MARKERS[i % len(_MARKERS)] for i, s in enumerate(sources)}
     for ax, q in zip(axs, quantities):
         unit_, label = QUANTITIES[q]
-        ax.plot(kin.knee_flexion_deg, kin.values[q], color='tab:blue', lw=1.8,
-                label='kneeseat')
+        ax.plot(kin.knee_flexion_deg, kin.values[q], color='tab:blue', lw=1.8, label=title)
         bad = kin.nonconverged[_body_of(q)]
         if bad.any():
             ax.plot(kin.knee_flexion_deg[bad], kin.values[q][bad], 'x', color=MARKER_RGB,
                     ms=7, mew=2, label='not converged')
         for k, (name, other) in enumerate((others or {}).items()):
-            if q in other.values:
-                ax.plot(other.knee_flexion_deg, other.values[q], '--', lw=1.2,
-                        color=('tab:orange', 'tab:green', 'tab:purple')[k % 3], label=name)
+            if q in other.values:       # converged cells only: a gap where it did not
+                shown = np.where(other.nonconverged[_body_of(q)], np.nan, other.values[q])
+                ax.plot(other.knee_flexion_deg, shown, '--', lw=1.2,
+                        color=('tab:orange', 'tab:green', 'tab:purple')[k % 3],
+                        label=f'{name} (converged cells)')
         for src in sources:
             pts = [(float(r['knee_flexion_deg']), float(r['value'])) for r in reference
                    if r['source'] == src and r['quantity'] == q]    # type: ignore[arg-type]

@@ -7,6 +7,8 @@ atomically (temp file in the target directory, then `os.replace`):
 - `plot_table`: per moving body, the three translations (mm, reference frame) and the
   rotation about the long axis (deg) against flexion (deg), one curve per chosen varus
   column; non-converged cells marked with red crosses.
+- `plot_convergence_map`: per moving body, the (flexion, varus) grid with every
+  non-converged cell coloured by its reason (the table metadata's `nonconverged`).
 - `render_table`: the bones drawn at several flexion angles side by side (like FIG. 15 of
   US 6,708,142), as an orthographic projection of depth-sorted, Lambert-shaded triangles
   (painter's algorithm). Meshes above `RENDER_MAX_FACES` triangles are simplified first by
@@ -32,7 +34,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.patches import Patch
+from matplotlib.patches import Patch, Rectangle
 import numpy as np
 import trimesh
 
@@ -43,7 +45,7 @@ from .typed import Floats
 
 __all__ = ['DPI', 'PLOT_PANEL_IN', 'PLOT_EXTRA_IN', 'RENDER_PANEL_IN', 'RENDER_EXTRA_IN',
            'RENDER_MAX_FACES', 'MARKER_RGB', 'PNG_KEY_NONCONVERGED', 'plot_table',
-           'render_table', 'write_png']
+           'plot_convergence_map', 'render_table', 'write_png']
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +155,78 @@ def plot_table(table: PoseTable, out: Path, *, varus_deg: Sequence[float] | None
     log.info('plot of %s: %d bodies, %d varus columns, %d non-converged points marked',
              _table_name(table), n_bodies, len(columns), marked_total)
     return write_png(fig, out, {PNG_KEY_NONCONVERGED: str(marked_total),
+                                PNG_KEY_TABLE: _table_name(table)})
+
+
+_REASON_COLOURS = ('tab:red', 'tab:orange', 'tab:purple', 'tab:brown', 'tab:pink', 'tab:olive',
+                   'tab:cyan', 'black')
+
+
+def plot_convergence_map(table: PoseTable, out: Path) -> Path:
+    """Map of the non-converged cells of every moving body, coloured by reason.
+
+    One panel per body: varus (deg) across, flexion (deg) down; converged cells pale,
+    each non-converged cell coloured by its reason class as recorded in the table's
+    metadata (`nonconverged`; tables without it show 'reason not recorded'). The legend
+    gives the count per reason; the panel title the converged share.
+
+    Returns:
+        `out`, the PNG written. Its `kneeseat:nonconverged` text is the number of cells drawn
+        as non-converged.
+
+    Raises:
+        ConfigError: `out` does not end in .png or cannot be written.
+    """
+    out = _checked_out(out)
+    flexion_deg = np.degrees(np.asarray(table.flexion_rad, dtype=np.float64))
+    varus_deg = np.degrees(np.asarray(table.varus_rad, dtype=np.float64))
+    converged = np.asarray(table.converged, dtype=bool)
+    recorded = table.metadata.get('nonconverged')
+    recorded = recorded if isinstance(recorded, dict) else {}
+    reasons: list[str] = []
+    cells: list[dict[tuple[int, int], str]] = []
+    for b, body in enumerate(table.bodies):
+        by_cell: dict[tuple[int, int], str] = {}
+        for row in recorded.get(body) or []:
+            if isinstance(row, list) and len(row) >= 3:
+                i = int(np.argmin(np.abs(flexion_deg - float(row[0]))))
+                j = int(np.argmin(np.abs(varus_deg - float(row[1]))))
+                by_cell[(i, j)] = str(row[2])
+        for i, j in zip(*np.nonzero(~converged[b])):
+            by_cell.setdefault((int(i), int(j)), 'reason not recorded')
+        cells.append(by_cell)
+        reasons.extend(r for r in by_cell.values() if r not in reasons)
+    colour = {r: _REASON_COLOURS[k % len(_REASON_COLOURS)] for k, r in enumerate(reasons)}
+    n = len(table.bodies)
+    fig = Figure(figsize=(4.5 * n, 6.5), dpi=DPI, layout='constrained')
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(1, n, squeeze=False)[0]
+    half_f = 0.5 * (np.diff(flexion_deg).min() if flexion_deg.size > 1 else 1.0)
+    half_v = 0.5 * (np.diff(varus_deg).min() if varus_deg.size > 1 else 1.0)
+    total = 0
+    for b, (ax, body) in enumerate(zip(axs, table.bodies)):
+        ax.add_patch(Rectangle((varus_deg[0] - half_v, flexion_deg[0] - half_f),
+                               varus_deg[-1] - varus_deg[0] + 2 * half_v,
+                               flexion_deg[-1] - flexion_deg[0] + 2 * half_f,
+                               facecolor='0.93', edgecolor='0.6'))
+        for (i, j), reason in cells[b].items():
+            ax.add_patch(Rectangle((varus_deg[j] - half_v, flexion_deg[i] - half_f),
+                                   2 * half_v, 2 * half_f, facecolor=colour[reason],
+                                   edgecolor='none'))
+        total += len(cells[b])
+        share = 100.0 * converged[b].mean()
+        ax.set_title(f'{body}: {share:.1f}% converged ({len(cells[b])} not)', fontsize=10)
+        ax.set_xlim(varus_deg[0] - half_v, varus_deg[-1] + half_v)
+        ax.set_ylim(flexion_deg[0] - half_f, flexion_deg[-1] + half_f)
+        ax.set_xlabel('varus [deg]')
+        if b == 0:
+            ax.set_ylabel('flexion [deg]')
+    counts = {r: sum(1 for c in cells for v in c.values() if v == r) for r in reasons}
+    handles = [Patch(facecolor='0.93', edgecolor='0.6', label='converged')]
+    handles += [Patch(facecolor=colour[r], label=f'{r} ({counts[r]})') for r in reasons]
+    fig.legend(handles=handles, loc='outside lower center', ncol=1, fontsize=8)
+    fig.suptitle(f'{_table_name(table)}: cells that did not converge')
+    return write_png(fig, out, {PNG_KEY_NONCONVERGED: str(total),
                                 PNG_KEY_TABLE: _table_name(table)})
 
 
