@@ -10,7 +10,8 @@ Topics (DESIGN.md "ROS 2 node"; rename them by remapping, never by parameter):
   stamp = the input's stamp)
 - out `/knee/markers` (visualization_msgs/MarkerArray) when `publish_markers` is true:
   published at `marker_rate_hz` with the latest answer, not once per answer, so a 1 kHz
-  tracker does not flood RViz/Foxglove; id 0 is the reference body, 1..B the moving ones.
+  tracker does not flood RViz/Foxglove; id 0 is the reference body, 1..B the moving ones,
+  plus 1000 k for a body's k-th further display mesh (conversions.body_markers).
 - out `/diagnostics` every `diagnostics_period_s` (DiagnosticArray, one status
   'kneeseat table_server'); rates and latency percentiles cover the last period,
   counters the whole run. Latency = node clock at publish - input stamp.
