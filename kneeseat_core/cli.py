@@ -244,7 +244,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_kinematics(args: argparse.Namespace) -> int:
     from .kinematics import (DEFAULT_ANGLES_DEG, kinematics_markdown, knee_kinematics,
                              plot_kinematics, read_reference, table_landmarks,
-                             write_kinematics_csv)
+                             write_kinematics_csv, write_text)
     from .table import read_table
     table = read_table(args.table)
     names = dict(tibia=args.tibia, patella=args.patella)
@@ -256,8 +256,7 @@ def _cmd_kinematics(args: argparse.Namespace) -> int:
     reference = read_reference(args.reference) if args.reference else []
     args.out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = write_kinematics_csv(every, args.out_dir / 'kinematics.csv')
-    md_path = args.out_dir / 'kinematics.md'
-    md_path.write_text(kinematics_markdown(chosen))
+    md_path = write_text(args.out_dir / 'kinematics.md', kinematics_markdown(chosen))
     name = str(table.metadata.get('name') or args.table.stem)
     others = {}
     for path in args.compare or []:

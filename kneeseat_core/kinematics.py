@@ -53,14 +53,14 @@ from matplotlib.figure import Figure
 import numpy as np
 import trimesh
 
-from .errors import ConfigError, TableError
+from .errors import ConfigError, MeshError, TableError
 from .geometry import matrix_from_quat, unit
 from .table import PoseTable
 from .typed import Floats, Vec3
 
 __all__ = ['QUANTITIES', 'DEFAULT_ANGLES_DEG', 'Landmarks', 'KneeKinematics', 'landmarks',
            'table_landmarks', 'knee_kinematics', 'kinematics_rows', 'kinematics_markdown',
-           'write_kinematics_csv', 'read_reference', 'plot_kinematics']
+           'write_kinematics_csv', 'write_text', 'read_reference', 'plot_kinematics']
 
 Side = Literal['right', 'left']
 
@@ -157,7 +157,11 @@ def table_landmarks(table: PoseTable, *, tibia: str | None = 'tibia',
         if given is not None or name not in entries:
             return None
         path, sha = mesh_entries(entries[name])[0]
-        mesh = load_mesh(path, units, quiet=True)     # only its centroids are needed
+        try:
+            mesh = load_mesh(path, units, quiet=True)     # only its centroids are needed
+        except MeshError as err:
+            raise MeshError(f'{err} (the {name} landmark comes from it; or pass '
+                            f'--{name}-point X,Y,Z)') from None
         if sha and file_sha256(Path(path)) != sha:
             raise TableError(f'{path} changed since the table was built (SHA-256 differs); '
                              f'pass --{name}-point X,Y,Z or rebuild the table')
@@ -306,15 +310,24 @@ def kinematics_markdown(kin: KneeKinematics, digits: int = 1) -> str:
 
 
 def write_kinematics_csv(kin: KneeKinematics, out: Path) -> Path:
-    """Write `kinematics_rows` as CSV (atomically, via `table`'s writer)."""
-    from .table import _atomic_write
+    """Write `kinematics_rows` as CSV, atomically."""
     rows = kinematics_rows(kin)
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator='\n')
     writer.writeheader()
     for row in rows:
         writer.writerow({k: (f'{v:.6g}' if isinstance(v, float) else v) for k, v in row.items()})
-    data = text.getvalue().encode()
+    return write_text(out, text.getvalue())
+
+
+def write_text(out: Path, text: str) -> Path:
+    """Write `text` to `out` atomically (temp file in the same directory, then rename).
+
+    Raises:
+        TableError: the file cannot be written (nothing is left behind).
+    """
+    from .table import _atomic_write
+    data = text.encode()
     try:
         _atomic_write(Path(out), lambda fh: fh.write(data))
     except OSError as err:
