@@ -1,7 +1,8 @@
-"""Cost of a full table build: both knees, 1 and 2 workers (issue 3).
+"""Cost of a full table build: the knees, 1 and 2 workers (issues 3 and 11).
 
-Run: `python benchmarks/bench_build.py [--knees default,tka] [--workers 1,2]
-[--data ../shared/data/tka_dm] [--flexion-grid=0,-90,1 --varus-grid=-10,10,1]`.
+Run: `python benchmarks/bench_build.py [--knees default,tka,natural,natural_no_menisci]
+[--workers 1,2] [--data ../shared/data/tka_dm] [--natural-data ../shared/data/natural_knee]
+[--flexion-grid=0,-90,1 --varus-grid=-10,10,1]`.
 Each build is `kneeseat build` (tibia and patella, the patent grid 91 x 21, step 1 mm,
 resolution 0.1 mm unless overridden) run as its own subprocess into a temporary directory,
 so that its peak memory can be read from the kernel: `os.wait4` returns the resource
@@ -30,6 +31,10 @@ from machine import describe_machine, load_average
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / 'shared' / 'data' / 'tka_dm'
+NATURAL_DATA = REPO.parent / 'shared' / 'data' / 'natural_knee'
+# knee -> (config, which data directory it reads); the default knee is embedded
+CONFIGS = {'tka': ('tka_dm.yaml', 'data'), 'natural': ('natural_knee.yaml', 'natural_data'),
+           'natural_no_menisci': ('natural_knee_no_menisci.yaml', 'natural_data')}
 TARGET_TKA_S = 60.0
 
 
@@ -38,8 +43,8 @@ def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> d
     out = work / f'{knee}_{workers}.npz'
     cmd = [sys.executable, '-m', 'kneeseat_core', 'build', '--out', str(out),
            '--workers', str(workers), '--quiet', *grid]
-    if knee == 'tka':
-        cmd[4:4] = [str(REPO / 'config' / 'tka_dm.yaml'), '--mesh-dir', str(data)]
+    if knee in CONFIGS:
+        cmd[4:4] = [str(REPO / 'config' / CONFIGS[knee][0]), '--mesh-dir', str(data)]
     env = dict(os.environ, XDG_CACHE_HOME=str(work / 'cache'))
     before = load_average()
     started = time.perf_counter()
@@ -71,10 +76,13 @@ def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> d
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--knees', default='default,tka', help='comma list: default, tka')
+    parser.add_argument('--knees', default='default,tka',
+                        help='comma list: default, tka, natural, natural_no_menisci')
     parser.add_argument('--workers', default='1,2', help='comma list of worker counts')
     parser.add_argument('--data', type=Path, default=DEFAULT_DATA,
                         help='directory of the total-knee meshes')
+    parser.add_argument('--natural-data', type=Path, default=NATURAL_DATA,
+                        help='directory of the natural-knee meshes')
     parser.add_argument('--flexion-grid', help='override, START,STOP,STEP degrees')
     parser.add_argument('--varus-grid', help='override, START,STOP,STEP degrees')
     args = parser.parse_args()
@@ -84,17 +92,21 @@ def main() -> int:
     if args.varus_grid:
         grid += [f'--varus-grid={args.varus_grid}']
     knees = [k for k in args.knees.split(',') if k]
-    if 'tka' in knees and not (args.data / 'femoral_component.stl').is_file():
-        print(f'skipping the total knee: no meshes in {args.data}', file=sys.stderr)
-        knees.remove('tka')
+    data = {'data': args.data, 'natural_data': args.natural_data}
+    for knee in [k for k in knees if k in CONFIGS]:
+        where = data[CONFIGS[knee][1]]
+        if not any(where.glob('*.stl')):
+            print(f'skipping {knee}: no meshes in {where}', file=sys.stderr)
+            knees.remove(knee)
     print(describe_machine())
     rows = []
     with tempfile.TemporaryDirectory(prefix='bench_build.') as tmp:
         for knee in knees:
             for workers in (int(w) for w in args.workers.split(',')):
-                row = build(knee, workers, args.data, grid, Path(tmp))
+                where = data[CONFIGS[knee][1]] if knee in CONFIGS else args.data
+                row = build(knee, workers, where, grid, Path(tmp))
                 rows.append(row)
-                print(f'{knee:7s} workers {workers}: wall {row["wall_s"]:6.1f} s (sweep '
+                print(f'{knee:18s} workers {workers}: wall {row["wall_s"]:6.1f} s (sweep '
                       f'{row["sweep_s"]:.1f} s), {row["cells"]} cells, {row["cells_per_s"]:.1f}'
                       f' cells/s, {row["checks_per_cell"]:.0f} checks/cell, converged '
                       f'{row["converged"]:.1f}% ({row["per_body"]}), peak RSS '

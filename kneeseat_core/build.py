@@ -23,10 +23,11 @@ from .geometry import quat_from_matrix
 from .knee import grid_values, KneeConfig, load_config
 from .status import STATUS_NAMES
 from .sweep import default_workers, process_executor, sweep, SweepResult
-from .table import PoseTable, write_table
+from .table import file_sha256, PoseTable, write_table
 
 __all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
-           'make_table', 'register_commands', 'executor_for']
+           'make_table', 'register_commands', 'executor_for',
+           'backed_out_lines']
 
 log = logging.getLogger(__name__)
 
@@ -71,15 +72,23 @@ def executor_for(workers: int, scheduler: str | None) -> tuple[Executor, Callabl
 
 
 def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
-    """Package a sweep result and its provenance as a `PoseTable`."""
+    """Package a sweep result and its provenance as a `PoseTable`.
+
+    Each body's metadata keeps `mesh`/`mesh_sha256` (its first collision mesh, as tables
+    always had) and lists every mesh in `meshes` and `display_meshes` ([{path, sha256}]).
+    """
     hashes = iter(result.mesh_sha256)   # taken by the sweep before it settled anything
 
     def body_meta(spec: Any) -> dict[str, Any]:
-        return {'name': spec.name, 'frame': spec.frame, 'mesh': str(spec.mesh),
-                'mesh_sha256': next(hashes),
-                'display_mesh': None if spec.display_mesh is None else str(spec.display_mesh)}
+        meshes = [{'path': str(m), 'sha256': next(hashes)} for m in spec.meshes]
+        return {'name': spec.name, 'frame': spec.frame, 'mesh': meshes[0]['path'],
+                'mesh_sha256': meshes[0]['sha256'], 'meshes': meshes,
+                'display_mesh': None if spec.display_mesh is None else str(spec.display_mesh),
+                'display_meshes': [{'path': str(m), 'sha256': file_sha256(m)}
+                                   for m in spec.display_meshes]}
 
     f0, v0 = result.anchor_cell
+    reference = body_meta(config.reference)      # hashes in order: reference, then bodies
     bodies = [body_meta(b) for b in config.bodies]
     for entry, anchor in zip(bodies, result.anchors):
         # where every cell's search envelope is measured from (kneeseat_core.sweep)
@@ -90,7 +99,7 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
             'orientation': quat_from_matrix(anchor[:3, :3]).tolist()}
     metadata = {
         'name': config.name,
-        'reference': body_meta(config.reference),
+        'reference': reference,
         'bodies': bodies,
         'axes': {'flexion': config.axes.flexion.tolist(), 'varus': config.axes.varus.tolist(),
                  'long': config.axes.long.tolist()},
@@ -103,15 +112,39 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
                     'wall_s': round(result.wall_s, 3),
                     'collision_checks': int(result.collision_checks)},
         'failures': list(result.failures),
-        # how each cell's settle ended (codes: kneeseat_core.search.Status)
+        # how each cell's settle ended (codes: kneeseat_core.status.Status)
         'cells': {'status_names': {str(k): v for k, v in STATUS_NAMES.items()},
                   'status': np.asarray(result.status).tolist()},
         'continuity': continuity(result.position_m, result.orientation_xyzw, result.converged,
                                  config.flexion_rad, config.varus_rad,
                                  [b.name for b in config.bodies]),
+        'backed_out': _backed_out(config, result),
     }
     return PoseTable(config.flexion_rad, config.varus_rad, result.position_m,
                      result.orientation_xyzw, result.converged, result.iterations, metadata)
+
+
+def _backed_out(config: KneeConfig, result: SweepResult) -> dict[str, Any]:
+    """Per body: cells whose start was in collision and backed out along -push, and how far."""
+    out: dict[str, Any] = {}
+    if result.backed_out_m is None:
+        return out
+    for b, spec in enumerate(config.bodies):
+        moved = result.backed_out_m[b][result.backed_out_m[b] > 0.0]
+        out[spec.name] = {'cells': int(moved.size),
+                          'max_mm': round(float(moved.max()) * 1e3, 3) if moved.size else 0.0}
+    return out
+
+
+def backed_out_lines(table: PoseTable) -> list[str]:
+    """One line per body whose start was in collision at some cells (build summary)."""
+    lines = []
+    for name, entry in (table.metadata.get('backed_out') or {}).items():
+        if entry.get('cells'):
+            lines.append(f'  {name}: the start was in collision at {entry["cells"]} cells '
+                         f'(up to {entry["max_mm"]:g} mm deep); each was backed out along '
+                         'the push before settling')
+    return lines
 
 
 def build_table(config: KneeConfig, out: Path, executor: Executor,
@@ -193,6 +226,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
             totals['cells'] += s['cells']
             totals['converged'] += s['converged']
             totals['wall_s'] += s['wall_s']
+            for line in backed_out_lines(table):
+                print(line)
             for reason in table.metadata.get('failures', []):
                 print(f'  not converged: {reason}')
     if len(loaded) > 1:

@@ -78,7 +78,7 @@ def _fix_negative_values(argv: list[str], flags: set[str]) -> list[str]:
 
 _VALUE_FLAGS = {'--push', '--flexion-deg', '--varus-deg', '--rotation-step',
                 '--rotation-resolution', '--step', '--resolution', '--flexion-grid',
-                '--varus-grid'}
+                '--varus-grid', '--tibia-point', '--patella-point', '--angles'}
 
 
 # ---- settle --------------------------------------------------------------------------
@@ -202,22 +202,40 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _display_paths(entry: dict[str, Any], display: bool) -> list[str]:
+    """A metadata entry's display meshes when asked and recorded, else its collision meshes.
+
+    Reads tables written before multi-mesh bodies (`mesh`/`display_mesh` only) too.
+    """
+    from .table import mesh_entries
+    if display:
+        listed = [m['path'] for m in entry.get('display_meshes') or [] if isinstance(m, dict)]
+        if listed:
+            return listed
+        if entry.get('display_mesh'):
+            return [entry['display_mesh']]
+    return [path for path, _ in mesh_entries(entry)]
+
+
 def _table_meshes(table: Any, display: bool) -> dict[str, Any]:
-    """Meshes named in a table's metadata (display meshes preferred when asked)."""
-    from .meshes import load_mesh
+    """Meshes named in a table's metadata, one (combined) mesh per body.
+
+    A body with several meshes (e.g. a tibia's bone and menisci) is drawn as their union.
+    """
+    from .meshes import load_meshes
     meta = table.metadata
     units = meta.get('config', {}).get('units', 'm')
-    meshes = {meta['reference']['name']: load_mesh(
-        (display and meta['reference'].get('display_mesh')) or meta['reference']['mesh'], units)}
-    for body in meta['bodies']:
-        meshes[body['name']] = load_mesh((display and body.get('display_mesh')) or body['mesh'],
-                                         units)
-    return meshes
+    return {entry['name']: load_meshes(_display_paths(entry, display), units)
+            for entry in (meta['reference'], *meta['bodies'])}
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from .plots import plot_table
+    from .plots import plot_convergence_map, plot_table
     from .table import read_table
+    if args.map:
+        out = plot_convergence_map(read_table(args.table), args.out)
+        print(f'wrote {out}')
+        return EXIT_OK
     out = plot_table(read_table(args.table), args.out, varus_deg=args.varus_deg)
     print(f'wrote {out}')
     return EXIT_OK
@@ -230,6 +248,37 @@ def _cmd_render(args: argparse.Namespace) -> int:
     out = render_table(table, _table_meshes(table, not args.implants), args.out,
                        flexion_deg=args.flexion_deg, view=args.view)
     print(f'wrote {out}')
+    return EXIT_OK
+
+
+def _cmd_kinematics(args: argparse.Namespace) -> int:
+    from .kinematics import (DEFAULT_ANGLES_DEG, kinematics_markdown, knee_kinematics,
+                             plot_kinematics, read_reference, table_landmarks,
+                             write_kinematics_csv, write_text)
+    from .table import read_table
+    table = read_table(args.table)
+    names = dict(tibia=args.tibia, patella=args.patella)
+    marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,
+                            patella_point=args.patella_point, **names)
+    angles = args.angles if args.angles is not None else list(DEFAULT_ANGLES_DEG)
+    every = knee_kinematics(table, marks, side=args.side, **names)
+    chosen = knee_kinematics(table, marks, angles_deg=angles, side=args.side, **names)
+    reference = read_reference(args.reference) if args.reference else []
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path = write_kinematics_csv(every, args.out_dir / 'kinematics.csv')
+    md_path = write_text(args.out_dir / 'kinematics.md', kinematics_markdown(chosen))
+    name = str(table.metadata.get('name') or args.table.stem)
+    others = {}
+    for path in args.compare or []:
+        other = read_table(path)
+        other_marks = table_landmarks(other, side=args.side, tibia_point=args.tibia_point,
+                                      patella_point=args.patella_point, **names)
+        label = str(other.metadata.get('name') or path.stem)
+        others[label] = knee_kinematics(other, other_marks, side=args.side, **names)
+    png = plot_kinematics(every, args.out_dir / 'kinematics.png', title=name,
+                          reference=reference, others=others)
+    print(kinematics_markdown(chosen), end='')
+    print(f'wrote {csv_path}, {md_path}, {png}')
     return EXIT_OK
 
 
@@ -289,6 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('table', type=Path)
     p.add_argument('--out', type=Path, required=True, help='output PNG')
     p.add_argument('--varus-deg', type=_angles, help='varus values for the curves, e.g. -10,0,10')
+    p.add_argument('--map', action='store_true',
+                   help='draw the map of non-converged cells and their reasons instead')
     p.set_defaults(command=_cmd_plot)
 
     p = sub.add_parser('render', help='draw the bones at several flexion angles (PNG)')
@@ -299,6 +350,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--implants', action='store_true',
                    help='draw the collision meshes even where display meshes exist')
     p.set_defaults(command=_cmd_render)
+
+    p = sub.add_parser('kinematics', help='secondary motions at varus 0 against flexion '
+                       '(CSV, Markdown table, PNG)')
+    p.add_argument('table', type=Path)
+    p.add_argument('--out-dir', type=Path, required=True,
+                   help='directory for kinematics.csv, kinematics.md and kinematics.png')
+    p.add_argument('--angles', type=_angles, metavar='DEG,...',
+                   help='knee flexion angles of the Markdown table, positive = flexed '
+                   '(default 0,15,30,45,60,75,90)')
+    p.add_argument('--side', choices=('right', 'left'), default='right', help='knee side')
+    p.add_argument('--tibia', default='tibia', help='tibia body name (default tibia)')
+    p.add_argument('--patella', default='patella', help='patella body name (default patella)')
+    p.add_argument('--tibia-point', type=_vector3, metavar='X,Y,Z',
+                   help='tibial landmark (m, tibia frame) instead of its mesh centroid')
+    p.add_argument('--patella-point', type=_vector3, metavar='X,Y,Z',
+                   help='patellar landmark (m, patella frame) instead of its mesh centroid')
+    p.add_argument('--reference', type=Path, metavar='CSV',
+                   help='published values to plot beside the table (source, quantity, '
+                   'knee_flexion_deg, value)')
+    p.add_argument('--compare', type=Path, action='append', metavar='TABLE',
+                   help='another table to draw as a dashed line (repeatable)')
+    p.set_defaults(command=_cmd_kinematics)
 
     _register_build_commands(sub)
     return parser

@@ -164,7 +164,7 @@ class DaskExecutor(Executor):
         with self._lock:
             if scene.mesh_sha256 in self._plugins:
                 return self._plugins[scene.mesh_sha256]
-            paths = (scene.reference_mesh,) + scene.body_meshes
+            paths = scene.paths()
             meshes: dict[str, tuple[str, bytes]] = {}
             for path, sha in zip(paths, scene.mesh_sha256):
                 try:
@@ -185,8 +185,8 @@ class DaskExecutor(Executor):
             return name
 
     def _with_meshes(self, job: ChainJob) -> ChainJob:
-        if len(job.scene.mesh_sha256) != 1 + len(job.scene.body_meshes):
-            paths = (job.scene.reference_mesh,) + job.scene.body_meshes
+        if len(job.scene.mesh_sha256) != len(job.scene.paths()):
+            paths = job.scene.paths()
             try:
                 hashes = tuple(file_sha256(Path(p)) for p in paths)
             except OSError as err:

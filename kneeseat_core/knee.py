@@ -15,12 +15,22 @@ total knee: with any fixed push it leaves the component within 10 degrees of fle
 default knee's patella conforms to its trochlea and needs no lock.
 
 Search envelope: a settle may slide a body at most `settle.max_slide_m` across its push and
-spin it at most `settle.max_spin_deg` about it, measured from the body's *neutral pose* at
-the cell (`neutral_pose`: the mesh as delivered, turned by A); a cell whose rest lies
-farther is "not converged" - geometry alone has no rest near that attitude. A body's own `envelope`
-({max_slide_m, max_spin_deg}) makes the envelope hold instead: it stands in for the soft
-tissue the patent leaves out, the body rests inside it, and a rest on its boundary is
-reported as constrained.
+spin it at most `settle.max_spin_deg` about it, measured from an anchor: in a sweep, the
+body's rest at the centre cell carried to the cell's attitude (kneeseat_core/sweep.py);
+a cell whose rest lies farther is "not converged" - geometry alone has no rest near that
+attitude. A body's own `envelope` ({max_slide_m, max_spin_deg}) makes the envelope hold
+instead: it stands in for the soft tissue the patent leaves out, the body rests inside it,
+and a rest on its boundary is reported as constrained.
+
+An optional `push_flexion_fraction` turns the push (and the locked slide) with
+push_flexion_fraction x flexion instead of the attitude's flexion_fraction x flexion: a
+patella's push is the resultant of its quadriceps and patellar-tendon pulls, which turns
+more slowly with flexion than the patella itself (docs/natural_knee.md).
+
+A body's `mesh` (and `display_mesh`) is a file name or a list of file names. The collision
+meshes of a body are combined into one rigid body (one BVH, contacts per triangle as for
+one mesh), e.g. a tibia carrying its cartilage and both menisci. `BodySpec.mesh` is the
+first of them; `BodySpec.meshes` holds them all.
 """
 from __future__ import annotations
 
@@ -32,18 +42,23 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .errors import ConfigError, SettleError
+from .errors import ConfigError, SettleError, TableError
 from .geometry import KneeAxes, pose_from, rotation_about, unit
 from .meshes import UNIT_SCALE, Units
 from .settle import SettleParams
 from .typed import Floats, Pose
 
-__all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values', 'neutral_pose']
+__all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values', 'neutral_pose',
+           'config_from_metadata']
 
 
 @dataclass(frozen=True, slots=True)
 class BodySpec:
-    """One body of the knee; `push` and fractions matter for moving bodies only."""
+    """One body of the knee; `push` and fractions matter for moving bodies only.
+
+    `mesh` and `display_mesh` are the first collision and display mesh; `meshes` and
+    `display_meshes` hold every one (filled from `mesh`/`display_mesh` when not given).
+    """
 
     name: str
     frame: str
@@ -54,6 +69,15 @@ class BodySpec:
     varus_fraction: float = 1.0
     locked_slide: tuple[float, float, float] | None = None   # neutral frame, turns with A
     envelope: tuple[float, float] | None = None   # (max slide m, max spin rad) that holds
+    meshes: tuple[Path, ...] = ()
+    display_meshes: tuple[Path, ...] = ()
+    push_flexion_fraction: float | None = None   # None: the push turns with the attitude
+
+    def __post_init__(self) -> None:
+        if not self.meshes:
+            object.__setattr__(self, 'meshes', (self.mesh,))
+        if not self.display_meshes and self.display_mesh is not None:
+            object.__setattr__(self, 'display_meshes', (self.display_mesh,))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -75,13 +99,23 @@ class KneeConfig:
         return (rotation_about(self.axes.flexion, body.flexion_fraction * flexion_rad)
                 @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
 
+    def push_turn(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
+        """(3, 3) rotation that turns `body`'s neutral push and locked slide at a cell.
+
+        The attitude, unless the body has a `push_flexion_fraction` (module docstring).
+        """
+        if body.push_flexion_fraction is None:
+            return self.attitude(body, flexion_rad, varus_rad)
+        return (rotation_about(self.axes.flexion, body.push_flexion_fraction * flexion_rad)
+                @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
+
     def push(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3,) unit push direction of `body` at a grid cell, reference frame."""
-        return self.attitude(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+        return self.push_turn(body, flexion_rad, varus_rad) @ np.asarray(body.push)
 
     def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
         """Settle parameters for `body` at a grid cell."""
-        turn = self.attitude(body, flexion_rad, varus_rad)
+        turn = self.push_turn(body, flexion_rad, varus_rad)
         push = turn @ np.asarray(body.push)
         lock = None if body.locked_slide is None else turn @ np.asarray(body.locked_slide)
         params = replace(self.settle, push=(float(push[0]), float(push[1]), float(push[2])),
@@ -111,16 +145,55 @@ def neutral_pose(attitude: Floats) -> Pose:
     return pose_from(attitude, np.zeros(3))
 
 
+def config_from_metadata(meta: dict[str, Any]) -> KneeConfig:
+    """The knee config a table was built from, rebuilt from its metadata (`resolved` part:
+    absolute mesh paths, settle parameters, grid), without reading the YAML again.
+
+    Raises:
+        TableError: the metadata lacks the resolved config (a table written without it).
+    """
+    try:
+        resolved = meta['config']['resolved']
+        axes = KneeAxes.from_vectors(*(meta['axes'][k] for k in ('flexion', 'varus', 'long')))
+        known = set(BodySpec.__dataclass_fields__)
+        settle_fields = set(SettleParams.__dataclass_fields__) - {'push', 'locked_slide'}
+        settle = replace(_DEFAULTS, **{k: v for k, v in resolved['settle'].items()
+                                       if k in settle_fields})
+        return KneeConfig(str(meta['config'].get('name', meta.get('name', ''))),
+                          meta['config'].get('units', 'm'),
+                          _spec_from_dict(resolved['reference'], known),
+                          tuple(_spec_from_dict(b, known) for b in resolved['bodies']), axes,
+                          np.radians(resolved['flexion_deg']), np.radians(resolved['varus_deg']),
+                          settle, dict(meta['config']))
+    except (KeyError, TypeError, ValueError) as err:
+        raise TableError(f'the table metadata does not hold the config it was built from '
+                         f'({type(err).__name__}: {err}); rebuild it with this kneeseat') from None
+
+
+def _spec_from_dict(data: dict[str, Any], known: set[str]) -> BodySpec:
+    d = {k: v for k, v in data.items() if k in known}
+    d['mesh'] = Path(d['mesh'])
+    d['display_mesh'] = None if d.get('display_mesh') is None else Path(d['display_mesh'])
+    d['meshes'] = tuple(Path(m) for m in d.get('meshes') or ())
+    d['display_meshes'] = tuple(Path(m) for m in d.get('display_meshes') or ())
+    for key in ('push', 'locked_slide', 'envelope'):
+        if d.get(key) is not None:
+            d[key] = tuple(float(x) for x in d[key])
+    return BodySpec(**d)
+
+
 def _spec_dict(spec: BodySpec) -> dict[str, Any]:
     d = asdict(spec)
     d['mesh'] = str(spec.mesh)
     d['display_mesh'] = None if spec.display_mesh is None else str(spec.display_mesh)
+    d['meshes'] = [str(m) for m in spec.meshes]
+    d['display_meshes'] = [str(m) for m in spec.display_meshes]
     return d
 
 
 _TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle'}
 _BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction',
-              'varus_fraction', 'locked_slide', 'envelope'}
+              'varus_fraction', 'locked_slide', 'envelope', 'push_flexion_fraction'}
 _ENVELOPE_KEYS = {'max_slide_m', 'max_spin_deg'}
 _REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
 _GRID_KEYS = {'flexion_deg', 'varus_deg'}
@@ -185,6 +258,19 @@ def _mesh_path(mesh_dir: Path, value: Any, where: str) -> Path:
     return path
 
 
+def _mesh_paths(mesh_dir: Path, value: Any, where: str) -> tuple[Path, ...]:
+    """A file name or a non-empty list of distinct file names -> paths."""
+    if not isinstance(value, list):
+        return (_mesh_path(mesh_dir, value, where),)
+    if not value:
+        raise ConfigError(f'{where} must be a file name or a non-empty list of file names, '
+                          'got []')
+    paths = tuple(_mesh_path(mesh_dir, v, f'{where}[{i}]') for i, v in enumerate(value))
+    if len(set(p.resolve() for p in paths)) != len(paths):
+        raise ConfigError(f'{where} lists a mesh twice ({value}); give each file once')
+    return paths
+
+
 def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
     _check_keys(data, _BODY_KEYS if moving else _REF_KEYS, where, {'name', 'mesh'})
     name = data['name']
@@ -192,22 +278,26 @@ def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
         raise ConfigError(f'{where}.name must be a simple identifier (letters, digits, _), '
                           f'got {name!r}')
     display = data.get('display_mesh')
-    spec = BodySpec(name=name, frame=str(data.get('frame', name)),
-                    mesh=_mesh_path(mesh_dir, data['mesh'], f'{where}.mesh'),
-                    display_mesh=None if display is None else
-                    _mesh_path(mesh_dir, display, f'{where}.display_mesh'))
+    meshes = _mesh_paths(mesh_dir, data['mesh'], f'{where}.mesh')
+    displays = () if display is None else _mesh_paths(mesh_dir, display,
+                                                      f'{where}.display_mesh')
+    spec = BodySpec(name=name, frame=str(data.get('frame', name)), mesh=meshes[0],
+                    display_mesh=displays[0] if displays else None, meshes=meshes,
+                    display_meshes=displays)
     if not moving:
         return spec
-    return BodySpec(spec.name, spec.frame, spec.mesh, spec.display_mesh,
-                    push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
-                    flexion_fraction=_number(data.get('flexion_fraction', 1.0),
-                                             f'{where}.flexion_fraction'),
-                    varus_fraction=_number(data.get('varus_fraction', 1.0),
-                                           f'{where}.varus_fraction'),
-                    locked_slide=(None if data.get('locked_slide') is None else
-                                  _vector(data['locked_slide'], f'{where}.locked_slide')),
-                    envelope=(None if data.get('envelope') is None else
-                              _envelope(data['envelope'], f'{where}.envelope')))
+    push_fraction = data.get('push_flexion_fraction')
+    return replace(spec, push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
+                   flexion_fraction=_number(data.get('flexion_fraction', 1.0),
+                                            f'{where}.flexion_fraction'),
+                   varus_fraction=_number(data.get('varus_fraction', 1.0),
+                                          f'{where}.varus_fraction'),
+                   locked_slide=(None if data.get('locked_slide') is None else
+                                 _vector(data['locked_slide'], f'{where}.locked_slide')),
+                   envelope=(None if data.get('envelope') is None else
+                             _envelope(data['envelope'], f'{where}.envelope')),
+                   push_flexion_fraction=(None if push_fraction is None else _number(
+                       push_fraction, f'{where}.push_flexion_fraction')))
 
 
 def _envelope(data: Any, where: str) -> tuple[float, float]:

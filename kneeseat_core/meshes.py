@@ -1,16 +1,21 @@
-"""Loading and validating triangle meshes (STL, PLY, OBJ, OFF, GLB) in metres."""
+"""Loading and validating triangle meshes (STL, PLY, OBJ, OFF, GLB) in metres.
+
+A mesh that is not watertight (an open cartilage sheet) is accepted with one warning per
+mesh and process: loading it again, or loading it `quiet` (sweep workers, whose parent has
+already validated every mesh with `check_mesh_files`), logs at debug level only.
+"""
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Sequence
 
 import numpy as np
 import trimesh
 
 from .errors import MeshError
 
-__all__ = ['Units', 'UNIT_SCALE', 'load_mesh', 'check_mesh']
+__all__ = ['Units', 'UNIT_SCALE', 'load_mesh', 'load_meshes', 'check_mesh', 'check_mesh_files']
 
 log = logging.getLogger(__name__)
 
@@ -19,17 +24,20 @@ UNIT_SCALE: dict[str, float] = {'m': 1.0, 'mm': 1e-3}
 
 # A bone or implant is millimetres to decimetres across; outside this the units are wrong.
 _PLAUSIBLE_EXTENT_M = (1e-3, 1.0)
+_WARNED_OPEN: set[str] = set()      # meshes already reported as not watertight
 
 
-def load_mesh(path: Path | str, units: Units = 'm') -> trimesh.Trimesh:
+def load_mesh(path: Path | str, units: Units = 'm', quiet: bool = False) -> trimesh.Trimesh:
     """Load one mesh file and return it validated, in metres.
 
     Degenerate and duplicate triangles are removed; a mesh that is not watertight is
-    accepted with a warning (collision still works, inside/outside may not).
+    accepted with a warning, once per file and process (collision still works,
+    inside/outside may not).
 
     Args:
         path: mesh file (STL, PLY, OBJ, OFF, GLB; a multi-part file is concatenated).
         units: units of the file's coordinates, 'm' or 'mm'. Never guessed.
+        quiet: log the not-watertight note at debug level (the caller validated it).
     Raises:
         MeshError: missing or unreadable file, no triangles, non-finite coordinates, or
             an implausible size for the declared units.
@@ -51,10 +59,39 @@ def load_mesh(path: Path | str, units: Units = 'm') -> trimesh.Trimesh:
                         'file with triangles')
     mesh = loaded.copy()
     mesh.apply_scale(UNIT_SCALE[units])
-    return check_mesh(mesh, str(path), units)
+    return check_mesh(mesh, str(path), units, quiet)
 
 
-def check_mesh(mesh: trimesh.Trimesh, name: str, units: Units = 'm') -> trimesh.Trimesh:
+def load_meshes(paths: Sequence[Path | str], units: Units = 'm',
+                quiet: bool = False) -> trimesh.Trimesh:
+    """Load several mesh files as one mesh (one rigid body), in metres.
+
+    Each file is validated as by `load_mesh`; the results are concatenated without merging
+    vertices across files, so every triangle keeps its own file's vertex normals.
+
+    Raises:
+        MeshError: as `load_mesh`, naming the file; or no path given.
+    """
+    if not paths:
+        raise MeshError('no mesh file given; name at least one')
+    meshes = [load_mesh(p, units, quiet) for p in paths]
+    if len(meshes) == 1:
+        return meshes[0]
+    return trimesh.util.concatenate(meshes)
+
+
+def check_mesh_files(paths: Sequence[Path | str], units: Units = 'm') -> None:
+    """Load and validate every file once (warnings included), e.g. before a sweep.
+
+    Raises:
+        MeshError: a file is missing, unreadable or implausible (see `load_mesh`).
+    """
+    for path in dict.fromkeys(str(p) for p in paths):
+        load_mesh(path, units)
+
+
+def check_mesh(mesh: trimesh.Trimesh, name: str, units: Units = 'm',
+               quiet: bool = False) -> trimesh.Trimesh:
     """Validate and clean a mesh already in metres (see `load_mesh`); `name` goes in errors.
 
     Raises:
@@ -82,6 +119,8 @@ def check_mesh(mesh: trimesh.Trimesh, name: str, units: Units = 'm') -> trimesh.
         raise MeshError(f'{name}: {extent:.4g} m across is not a plausible bone or implant '
                         f'size with units={units}; {hint}')
     if not mesh.is_watertight:
-        log.warning('%s: mesh is not watertight; settling works, but deep penetration '
-                    'cannot be told from a hole', name)
+        level = logging.DEBUG if quiet or name in _WARNED_OPEN else logging.WARNING
+        _WARNED_OPEN.add(name)
+        log.log(level, '%s: mesh is not watertight (open sheet or holes); accepted: settling '
+                'works, but deep penetration cannot be told from a hole', name)
     return mesh

@@ -7,6 +7,8 @@ atomically (temp file in the target directory, then `os.replace`):
 - `plot_table`: per moving body, the three translations (mm, reference frame) and the
   rotation about the long axis (deg) against flexion (deg), one curve per chosen varus
   column; non-converged cells marked with red crosses.
+- `plot_convergence_map`: per moving body, the (flexion, varus) grid with every
+  cell that did not end at a plain rest coloured by its status (`PoseTable.status`).
 - `render_table`: the bones drawn at several flexion angles side by side (like FIG. 15 of
   US 6,708,142), as an orthographic projection of depth-sorted, Lambert-shaded triangles
   (painter's algorithm). Meshes above `RENDER_MAX_FACES` triangles are simplified first by
@@ -32,18 +34,19 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.patches import Patch
+from matplotlib.patches import Patch, Rectangle
 import numpy as np
 import trimesh
 
 from .errors import ConfigError
 from .geometry import matrix_from_quat, TOL, unit
+from .status import Status, STATUS_NAMES
 from .table import PoseTable
 from .typed import Floats
 
 __all__ = ['DPI', 'PLOT_PANEL_IN', 'PLOT_EXTRA_IN', 'RENDER_PANEL_IN', 'RENDER_EXTRA_IN',
            'RENDER_MAX_FACES', 'MARKER_RGB', 'PNG_KEY_NONCONVERGED', 'plot_table',
-           'render_table', 'write_png']
+           'plot_convergence_map', 'render_table', 'write_png']
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +156,74 @@ def plot_table(table: PoseTable, out: Path, *, varus_deg: Sequence[float] | None
     log.info('plot of %s: %d bodies, %d varus columns, %d non-converged points marked',
              _table_name(table), n_bodies, len(columns), marked_total)
     return write_png(fig, out, {PNG_KEY_NONCONVERGED: str(marked_total),
+                                PNG_KEY_TABLE: _table_name(table)})
+
+
+_REASON_COLOURS = ('tab:red', 'tab:orange', 'tab:purple', 'tab:brown', 'tab:pink', 'tab:olive',
+                   'tab:cyan', 'black')
+
+
+def plot_convergence_map(table: PoseTable, out: Path) -> Path:
+    """Map of every moving body's cells that did not end at a plain rest, coloured by how
+    their settle ended (`PoseTable.status`).
+
+    One panel per body: varus (deg) across, flexion (deg) down; cells at rest pale, every
+    other cell coloured by its status (rests on the boundary of an envelope that holds,
+    cells that left the search envelope, lost contact, ...; a table written without status
+    codes shows its non-converged cells as 'not converged'). The legend gives the count
+    per status; the panel title the converged share.
+
+    Returns:
+        `out`, the PNG written. Its `kneeseat:nonconverged` text is the number of cells drawn
+        as not converged.
+
+    Raises:
+        ConfigError: `out` does not end in .png or cannot be written.
+    """
+    out = _checked_out(out)
+    flexion_deg = np.degrees(np.asarray(table.flexion_rad, dtype=np.float64))
+    varus_deg = np.degrees(np.asarray(table.varus_rad, dtype=np.float64))
+    converged = np.asarray(table.converged, dtype=bool)
+    codes = table.status
+    reasons: list[str] = []
+    cells: list[dict[tuple[int, int], str]] = []
+    for b in range(len(table.bodies)):
+        by_cell = {(int(i), int(j)): STATUS_NAMES.get(int(codes[b, i, j]), 'not converged')
+                   for i, j in zip(*np.nonzero(codes[b] != Status.REST))}
+        cells.append(by_cell)
+        reasons.extend(r for r in by_cell.values() if r not in reasons)
+    colour = {r: _REASON_COLOURS[k % len(_REASON_COLOURS)] for k, r in enumerate(reasons)}
+    n = len(table.bodies)
+    fig = Figure(figsize=(4.5 * n, 6.5), dpi=DPI, layout='constrained')
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(1, n, squeeze=False)[0]
+    half_f = 0.5 * (np.diff(flexion_deg).min() if flexion_deg.size > 1 else 1.0)
+    half_v = 0.5 * (np.diff(varus_deg).min() if varus_deg.size > 1 else 1.0)
+    total = 0
+    for b, (ax, body) in enumerate(zip(axs, table.bodies)):
+        ax.add_patch(Rectangle((varus_deg[0] - half_v, flexion_deg[0] - half_f),
+                               varus_deg[-1] - varus_deg[0] + 2 * half_v,
+                               flexion_deg[-1] - flexion_deg[0] + 2 * half_f,
+                               facecolor='0.93', edgecolor='0.6'))
+        for (i, j), reason in cells[b].items():
+            ax.add_patch(Rectangle((varus_deg[j] - half_v, flexion_deg[i] - half_f),
+                                   2 * half_v, 2 * half_f, facecolor=colour[reason],
+                                   edgecolor='none'))
+        missed = int((~converged[b]).sum())
+        total += missed
+        share = 100.0 * converged[b].mean()
+        ax.set_title(f'{body}: {share:.1f}% converged ({missed} not)', fontsize=10)
+        ax.set_xlim(varus_deg[0] - half_v, varus_deg[-1] + half_v)
+        ax.set_ylim(flexion_deg[0] - half_f, flexion_deg[-1] + half_f)
+        ax.set_xlabel('varus [deg]')
+        if b == 0:
+            ax.set_ylabel('flexion [deg]')
+    counts = {r: sum(1 for c in cells for v in c.values() if v == r) for r in reasons}
+    handles = [Patch(facecolor='0.93', edgecolor='0.6', label='rest')]
+    handles += [Patch(facecolor=colour[r], label=f'{r} ({counts[r]})') for r in reasons]
+    fig.legend(handles=handles, loc='outside lower center', ncol=1, fontsize=8)
+    fig.suptitle(f'{_table_name(table)}: cells that did not converge')
+    return write_png(fig, out, {PNG_KEY_NONCONVERGED: str(total),
                                 PNG_KEY_TABLE: _table_name(table)})
 
 

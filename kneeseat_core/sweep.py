@@ -27,10 +27,13 @@ turned by the attitude (`knee.neutral_pose`). So a chain cannot drift farther fr
 joint than the envelope. A cell whose warm-started settle does not converge is settled
 once more from the cold start (the neutral pose backed off one step) and only a converged
 result seeds the next cell.
-Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`. The
-spec carries each mesh's SHA-256, so a worker that cannot read the paths (a remote Dask
-worker) finds the bytes shipped to it by content (`register_mesh_copy`, kneeseat_core/cluster.py),
-and a long-lived worker never reuses bodies of a mesh file that has since changed.
+Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`; a
+body made of several meshes is loaded as one rigid body. The parent validates every mesh
+once before the sweep (warnings such as an open cartilage sheet appear once per mesh), so
+workers load quietly. The spec carries each mesh file's SHA-256, so a worker that cannot
+read the paths (a remote Dask worker) finds the bytes shipped to it by content
+(`register_mesh_copy`, kneeseat_core/cluster.py), and a long-lived worker never reuses
+bodies of a mesh file that has since changed.
 """
 from __future__ import annotations
 
@@ -40,6 +43,7 @@ import logging
 import math
 import multiprocessing
 import os
+from pathlib import Path
 import threading
 import time
 from typing import Callable, Iterable, Sequence
@@ -50,7 +54,7 @@ from .collision import RigidBody
 from .errors import NoContactError, SettleError
 from .geometry import pose_from, quat_from_matrix
 from .knee import KneeConfig, neutral_pose
-from .meshes import load_mesh
+from .meshes import check_mesh_files, load_meshes
 from .settle import settle, SettleParams
 from .status import Status
 from .table import file_sha256
@@ -66,12 +70,24 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class SceneSpec:
-    """What a worker needs to rebuild the rigid bodies (small, picklable, hashable)."""
+    """What a worker needs to rebuild the rigid bodies (small, picklable, hashable).
 
-    reference_mesh: str
-    body_meshes: tuple[str, ...]
+    A body's meshes are one path, or a tuple of paths combined into one rigid body.
+    """
+
+    reference_mesh: str | tuple[str, ...]
+    body_meshes: tuple[str | tuple[str, ...], ...]
     units: str
-    mesh_sha256: tuple[str, ...] = ()   # hex, reference then bodies; () = paths only
+    mesh_sha256: tuple[str, ...] = ()   # hex, one per file of `paths()`; () = paths only
+
+    def groups(self) -> tuple[tuple[str, ...], ...]:
+        """The mesh files of each body: the reference first, then the moving bodies."""
+        return tuple((g,) if isinstance(g, str) else tuple(g)
+                     for g in (self.reference_mesh, *self.body_meshes))
+
+    def paths(self) -> tuple[str, ...]:
+        """Every mesh file, in body order (the order of `mesh_sha256`)."""
+        return tuple(p for g in self.groups() for p in g)
 
 
 _SCENES: dict[SceneSpec, tuple[RigidBody, tuple[RigidBody, ...]]] = {}
@@ -101,14 +117,17 @@ def _mesh_source(spec: SceneSpec, index: int, path: str) -> str:
 
 
 def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
-    """The rigid bodies of `spec`, built once per process and cached."""
+    """The rigid bodies of `spec`, built once per process and cached (loaded quietly)."""
     global _SCENE_BUILDS
     with _SCENES_LOCK:
         if spec not in _SCENES:
-            paths = (spec.reference_mesh,) + spec.body_meshes
-            bodies = tuple(RigidBody.from_mesh(load_mesh(_mesh_source(spec, i, p),
-                                                         spec.units))  # type: ignore[arg-type]
-                           for i, p in enumerate(paths))
+            groups, bodies_list, index = spec.groups(), [], 0
+            for group in groups:
+                sources = [_mesh_source(spec, index + k, p) for k, p in enumerate(group)]
+                index += len(group)
+                bodies_list.append(RigidBody.from_mesh(
+                    load_meshes(sources, spec.units, quiet=True)))  # type: ignore[arg-type]
+            bodies = tuple(bodies_list)
             _SCENES.clear()          # one scene per worker at a time keeps memory flat
             _SCENES[spec] = (bodies[0], bodies[1:])
             _SCENE_BUILDS += 1
@@ -143,6 +162,7 @@ class ChainResult:
     collision_checks: int
     reasons: tuple[str, ...]
     elapsed_s: float
+    backed_out_m: Floats      # (n,) how far each kept settle backed its start out
 
 
 def carried(pose: Pose, from_attitude: Floats, attitude: Floats) -> Pose:
@@ -174,6 +194,7 @@ def run_chain(job: ChainJob) -> ChainResult:
     converged = np.zeros(n, dtype=bool)
     iterations = np.zeros(n, dtype=np.int64)
     status = np.full(n, Status.FAILED, dtype=np.int8)
+    backed = np.zeros(n)
     reasons: list[str] = []
     checks = 0
     previous, previous_attitude = job.start, job.start_attitude
@@ -195,12 +216,13 @@ def run_chain(job: ChainJob) -> ChainResult:
         converged[i] = result.converged
         iterations[i] = result.iterations
         status[i] = result.status
+        backed[i] = result.backed_out_m
         checks += result.collision_checks
         reasons.append(result.reason)
         if result.converged:   # a failed cell never seeds its neighbours
             previous, previous_attitude = result.pose, attitude
     return ChainResult(job.body, job.cells, poses, converged, iterations, status, checks,
-                       tuple(reasons), time.perf_counter() - started)
+                       tuple(reasons), time.perf_counter() - started, backed)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -214,9 +236,10 @@ class SweepResult:
     status: Floats              # (B, F, V) int8, `Status` codes
     collision_checks: int
     wall_s: float
-    mesh_sha256: tuple[str, ...]    # hex, of the meshes swept: reference then bodies
+    mesh_sha256: tuple[str, ...]    # hex, of the mesh files swept (SceneSpec.paths order)
     anchors: Floats                 # (B, 4, 4) envelope anchor of each body (module docstring)
     anchor_cell: tuple[int, int]    # (flexion, varus) index the anchors belong to
+    backed_out_m: Floats            # (B, F, V) how far each cell's start was backed out
     failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
 
     @property
@@ -272,15 +295,17 @@ def sweep(config: KneeConfig, executor: Executor,
     started = time.perf_counter()
     flex, var = config.flexion_rad, config.varus_rad
     nb, nf, nv = len(config.bodies), len(flex), len(var)
-    meshes = (config.reference.mesh,) + tuple(b.mesh for b in config.bodies)
-    scene = SceneSpec(str(config.reference.mesh), tuple(str(b.mesh) for b in config.bodies),
-                      config.units, tuple(file_sha256(m) for m in meshes))
+    groups = [tuple(str(m) for m in spec.meshes) for spec in (config.reference, *config.bodies)]
+    scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
+                      tuple(file_sha256(Path(p)) for g in groups for p in g))
+    check_mesh_files(scene.paths(), config.units)   # once here; workers load quietly
     f0 = int(np.argmin(np.abs(flex)))
     v0 = int(np.argmin(np.abs(var)))
     poses = np.zeros((nb, nf, nv, 4, 4))
     converged = np.zeros((nb, nf, nv), dtype=bool)
     iterations = np.zeros((nb, nf, nv), dtype=np.int64)
     status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
+    backed = np.zeros((nb, nf, nv))
     failures: list[str] = []
     checks = 0
 
@@ -304,6 +329,7 @@ def sweep(config: KneeConfig, executor: Executor,
                 converged[res.body, f, v] = res.converged[k]
                 iterations[res.body, f, v] = res.iterations[k]
                 status[res.body, f, v] = res.status[k]
+                backed[res.body, f, v] = res.backed_out_m[k]
                 if not res.converged[k] and len(failures) < 5:
                     failures.append(f'{config.bodies[res.body].name} flexion '
                                     f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}:'
@@ -348,8 +374,9 @@ def sweep(config: KneeConfig, executor: Executor,
             converged[b] = converged[b, :, v0:v0 + 1]
             iterations[b] = iterations[b, :, v0:v0 + 1]
             status[b] = status[b, :, v0:v0 + 1]
+            backed[b] = backed[b, :, v0:v0 + 1]
             if progress:           # the copies are cells of the table too
                 progress(nf * (nv - 1))
     return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
                        converged, iterations, status, checks, time.perf_counter() - started,
-                       scene.mesh_sha256, anchors, (f0, v0), tuple(failures))
+                       scene.mesh_sha256, anchors, (f0, v0), backed, tuple(failures))

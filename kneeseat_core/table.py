@@ -48,7 +48,7 @@ from .typed import Floats
 
 __all__ = ['SCHEMA', 'SUPPORTED_SCHEMAS', 'ARRAY_NAMES', 'METADATA_KEYS', 'PoseTable', 'Lookup',
            'write_table', 'read_table', 'with_hash', 'arrays_sha256', 'file_sha256',
-           'describe', 'status_map', 'lookup_json', 'export_csv', 'CSV_COLUMNS']
+           'describe', 'status_map', 'lookup_json', 'export_csv', 'CSV_COLUMNS', 'mesh_entries']
 
 SCHEMA = 'kneeseat.table/1'
 SUPPORTED_SCHEMAS = (SCHEMA,)
@@ -59,6 +59,9 @@ SUPPORTED_SCHEMAS = (SCHEMA,)
 #   reference: {"name": str, "frame": str, "mesh": str (path), "mesh_sha256": str}
 #   bodies: [{"name": str, "frame": str, "mesh": str, "mesh_sha256": str,
 #             "display_mesh": str | null}, ...]          (order = axis B of the arrays)
+#   (since multi-mesh bodies, each reference/body entry also has "meshes" and
+#    "display_meshes": [{"path": str, "sha256": str}, ...], every collision and display
+#    mesh; "mesh"/"mesh_sha256" are then the first collision mesh. Older tables lack them.)
 #   axes: {"flexion": [3], "varus": [3], "long": [3]}   (unit, reference frame)
 #   config: the full knee config as a dict
 #   settle: the settle parameters as a dict
@@ -528,13 +531,14 @@ def write_table(path: Path, table: PoseTable) -> None:
 _CORRUPT = (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError)
 
 
-def read_table(path: Path, meshes: dict[str, Path] | None = None) -> PoseTable:
+def read_table(path: Path, meshes: dict[str, Any] | None = None) -> PoseTable:
     """Load and verify a table file.
 
     Args:
         path: a `.npz` written by `write_table`.
-        meshes: optional body name -> mesh path (the reference body's name is accepted too);
-            each file's SHA-256 must match the one recorded in the metadata.
+        meshes: optional body name -> mesh path, or list of paths for a body made of
+            several meshes (the reference body's name is accepted too); each file's SHA-256
+            must match the one recorded in the metadata.
     Returns:
         The table, arrays read-only, interpolation data precomputed.
     Raises:
@@ -612,30 +616,47 @@ def _read_member(npz: Any, name: str, where: str) -> np.ndarray:
         raise TableError(f'{where} is corrupt (array {name!r}: {err}); {_REBUILD}') from None
 
 
-def _check_meshes(meta: dict[str, Any], meshes: dict[str, Path], where: str) -> None:
+def mesh_entries(entry: dict[str, Any]) -> list[tuple[str, str]]:
+    """(path, sha256) of every collision mesh of a metadata body or reference entry.
+
+    Tables written before multi-mesh bodies have only `mesh`/`mesh_sha256`.
+    """
+    listed = entry.get('meshes')
+    if isinstance(listed, list) and listed:
+        return [(str(m.get('path', '?')), str(m.get('sha256') or '')) for m in listed
+                if isinstance(m, dict)]
+    return [(str(entry.get('mesh', '?')), str(entry.get('mesh_sha256') or ''))]
+
+
+def _check_meshes(meta: dict[str, Any], meshes: dict[str, Any], where: str) -> None:
     entries = {b['name']: b for b in meta['bodies']}
     ref = meta['reference']
     if isinstance(ref.get('name'), str):
         entries.setdefault(ref['name'], ref)
-    for name, mesh in meshes.items():
+    for name, given in meshes.items():
         entry = entries.get(name)
         if entry is None:
             raise TableError(f'{where} has no body named {name!r} (bodies: '
                              f'{", ".join(entries)}); check the mesh names you pass')
-        want = entry.get('mesh_sha256')
-        if not isinstance(want, str) or not want:
-            raise TableError(f'{where} records no SHA-256 for the mesh of {name!r}, so it '
-                             f'cannot be checked; {_REBUILD}')
-        try:
-            got = file_sha256(Path(mesh))
-        except OSError as err:
-            raise MeshError(f'mesh file {mesh} for {name!r} cannot be read '
-                            f'({err.strerror or err}); check the path') from None
-        if got != want:
-            raise TableError(f'{where} was built from other meshes: {name!r} mesh {mesh} has '
-                             f'SHA-256 {got[:12]}, the table expects {want[:12]} (built from '
-                             f'{entry.get("mesh", "?")}); rebuild the table from these meshes '
-                             'or pass the ones it was built from')
+        files = list(given) if isinstance(given, (list, tuple)) else [given]
+        recorded = mesh_entries(entry)
+        if len(files) != len(recorded):
+            raise TableError(f'{where} was built from {len(recorded)} mesh(es) for {name!r}, '
+                             f'{len(files)} given; pass the ones it was built from, in order')
+        for mesh, (built_from, want) in zip(files, recorded):
+            if not want:
+                raise TableError(f'{where} records no SHA-256 for the mesh of {name!r}, so '
+                                 f'it cannot be checked; {_REBUILD}')
+            try:
+                got = file_sha256(Path(mesh))
+            except OSError as err:
+                raise MeshError(f'mesh file {mesh} for {name!r} cannot be read '
+                                f'({err.strerror or err}); check the path') from None
+            if got != want:
+                raise TableError(f'{where} was built from other meshes: {name!r} mesh {mesh} '
+                                 f'has SHA-256 {got[:12]}, the table expects {want[:12]} '
+                                 f'(built from {built_from}); rebuild the table from these '
+                                 'meshes or pass the ones it was built from')
 
 
 # ------------------------------------------------------------------- describe / export
@@ -660,8 +681,8 @@ def describe(table: PoseTable) -> str:
              f'(kneeseat {meta.get("kneeseat_version", "?")})',
              f'built:      {meta.get("built", "?")}',
              f'arrays:     sha256 {str(meta.get("arrays_sha256", "?"))[:12]}',
-             f'reference:  {ref.get("name", "?")} (frame {ref.get("frame", "?")}, mesh '
-             f'{ref.get("mesh", "?")}, sha256 {str(ref.get("mesh_sha256", "?"))[:12]})',
+             f'reference:  {ref.get("name", "?")} (frame {ref.get("frame", "?")}, '
+             f'{_meshes_text(ref)})',
              f'flexion:    {_grid_text(table.flexion_rad)}',
              f'varus:      {_grid_text(table.varus_rad)}']
     axes = meta.get('axes')
@@ -674,10 +695,13 @@ def describe(table: PoseTable) -> str:
     iters = np.asarray(table.iterations)
     for b, body in enumerate(meta['bodies']):
         c = conv[b]
-        lines.append(f'  {body["name"]}: frame {body["frame"]}, mesh {body.get("mesh", "?")} '
-                     f'(sha256 {str(body.get("mesh_sha256", "?"))[:12]})')
+        lines.append(f'  {body["name"]}: frame {body["frame"]}, {_meshes_text(body)}')
         lines.append(f'    converged {100.0 * c.mean():.1f}% ({int(c.sum())}/{c.size}), '
                      f'iterations median {float(np.median(iters[b])):g} max {int(iters[b].max())}')
+        backed = _mapping(_mapping(meta.get('backed_out')).get(body['name']))
+        if backed.get('cells'):
+            lines.append(f'    start in collision (backed out along the push) at '
+                         f'{backed["cells"]} cells, up to {backed.get("max_mm", "?")} mm')
     settle = meta.get('settle')
     if isinstance(settle, dict) and settle:
         lines.append('settle:     ' + ', '.join(f'{k}={v}' for k, v in settle.items()))
@@ -748,6 +772,18 @@ def status_map(table: PoseTable) -> str:
         for i in range(codes.shape[1]):
             lines.append(f'{deg_f[i]:8g} ' + ''.join(marks.get(int(c), '?') for c in codes[b, i]))
     return '\n'.join(lines)
+
+
+def _mapping(value: Any) -> dict[str, Any]:
+    """`value` if it is a dict, else {} (optional metadata written by newer builds)."""
+    return value if isinstance(value, dict) else {}
+
+
+def _meshes_text(entry: dict[str, Any]) -> str:
+    """'mesh PATH (sha256 HEX)' or 'meshes A (sha256 ..), B (..)' of a metadata entry."""
+    files = mesh_entries(entry)
+    text = ', '.join(f'{path} (sha256 {sha[:12] or "?"})' for path, sha in files)
+    return f'mesh{"es" if len(files) > 1 else ""} {text}'
 
 
 def lookup_json(table: PoseTable, lookup: Lookup, flexion_rad: float | None = None,

@@ -22,15 +22,15 @@ import numpy as np
 from tqdm import tqdm
 
 from .errors import TableError
-from .geometry import KneeAxes, matrix_from_quat, pose_from, rotation_about
-from .knee import neutral_pose
+from .geometry import matrix_from_quat, pose_from
+from .knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
 from .meshes import load_mesh
 from .referee import Envelope, Referee, Verdict
 from .search import SettleParams
 from .status import Status, STATUS_NAMES
 from .sweep import carried
 from .table import PoseTable, read_table
-from .typed import Floats, Pose
+from .typed import Pose
 
 __all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'register_command']
 
@@ -127,49 +127,27 @@ class _CellJob:
 _WORKER_STATE: dict[str, Any] = {}
 
 
-def _mesh_file(path: str, mesh_dir: str | None) -> str:
-    return str(Path(mesh_dir) / Path(path).name) if mesh_dir else path
+def _mesh_file(path: Path, mesh_dir: str | None) -> str:
+    return str(Path(mesh_dir) / path.name) if mesh_dir else str(path)
 
 
-def _body_meshes(entry: dict[str, Any], units: Any, mesh_dir: str | None) -> list[Any]:
-    paths = [m['path'] for m in entry['meshes']] if isinstance(entry.get('meshes'), list) \
-        else [entry['mesh']]
-    return [load_mesh(_mesh_file(p, mesh_dir), units) for p in paths]
+def _meshes(spec: BodySpec, units: Any, mesh_dir: str | None) -> list[Any]:
+    return [load_mesh(_mesh_file(p, mesh_dir), units) for p in spec.meshes]
 
 
-def _cell_problem(meta: dict[str, Any], body: int, flexion: float, varus: float
-                  ) -> tuple[SettleParams, Pose]:
+def _cell_problem(config: KneeConfig, meta: dict[str, Any], body: int, flexion: float,
+                  varus: float) -> tuple[SettleParams, Pose]:
     """The settle parameters (push, lock, envelope) and the envelope's anchor at a cell."""
-    resolved = meta['config']['resolved']
-    spec, settle = resolved['bodies'][body], resolved['settle']
-    axes = KneeAxes.from_vectors(meta['axes']['flexion'], meta['axes']['varus'],
-                                 meta['axes']['long'])
-
-    def attitude(f: float, v: float) -> Floats:
-        return (rotation_about(axes.flexion, float(spec.get('flexion_fraction', 1.0)) * f)
-                @ rotation_about(axes.varus, float(spec.get('varus_fraction', 1.0)) * v))
-
-    turn = attitude(flexion, varus)
-    anchor = neutral_pose(turn)
+    spec = config.bodies[body]
+    attitude = config.attitude(spec, flexion, varus)
+    anchor = neutral_pose(attitude)
     stored = meta['bodies'][body].get('envelope_anchor')
     if isinstance(stored, dict):          # the sweep's anchor: the centre rest, carried
         anchor = carried(pose_from(matrix_from_quat(np.asarray(stored['orientation'])),
                                    np.asarray(stored['position'])),
-                         attitude(math.radians(stored['flexion_deg']),
-                                  math.radians(stored['varus_deg'])), turn)
-    push = turn @ np.asarray(spec['push'], dtype=float)
-    lock = None if spec.get('locked_slide') is None else \
-        turn @ np.asarray(spec['locked_slide'], dtype=float)
-    envelope = spec.get('envelope')
-    defaults = SettleParams()
-    params = SettleParams(
-        push=tuple(float(x) for x in push), resolution_m=float(settle['resolution_m']),
-        locked_slide=None if lock is None else tuple(float(x) for x in lock),
-        max_slide_m=float(envelope[0] if envelope else
-                          settle.get('max_slide_m', defaults.max_slide_m)),
-        max_spin_rad=float(envelope[1] if envelope else
-                           settle.get('max_spin_rad', defaults.max_spin_rad)))
-    return params, anchor
+                         config.attitude(spec, math.radians(stored['flexion_deg']),
+                                         math.radians(stored['varus_deg'])), attitude)
+    return config.params(spec, flexion, varus), anchor
 
 
 def _judge_cells(job: _CellJob) -> list[CellVerdict]:
@@ -177,19 +155,19 @@ def _judge_cells(job: _CellJob) -> list[CellVerdict]:
     key = f'{job.table}|{job.mesh_dir}'
     if _WORKER_STATE.get('key') != key:
         table = read_table(Path(job.table))
-        meta = table.metadata
-        units = meta.get('config', {}).get('units', 'm')
+        config = config_from_metadata(table.metadata)
         _WORKER_STATE.clear()
         _WORKER_STATE.update(
-            key=key, table=table,
-            fixed=_body_meshes(meta['reference'], units, job.mesh_dir),
-            moving=[_body_meshes(b, units, job.mesh_dir) for b in meta['bodies']])
+            key=key, table=table, config=config,
+            fixed=_meshes(config.reference, config.units, job.mesh_dir),
+            moving=[_meshes(b, config.units, job.mesh_dir) for b in config.bodies])
     table: PoseTable = _WORKER_STATE['table']
+    config: KneeConfig = _WORKER_STATE['config']
     meta, codes = table.metadata, table.status
     out = []
     for b, i, j in job.cells:
         flexion, varus = float(table.flexion_rad[i]), float(table.varus_rad[j])
-        params, anchor = _cell_problem(meta, b, flexion, varus)
+        params, anchor = _cell_problem(config, meta, b, flexion, varus)
         pose = pose_from(matrix_from_quat(table.orientation_xyzw[b, i, j]),
                          table.position_m[b, i, j])
         referee = Referee(_WORKER_STATE['fixed'], _WORKER_STATE['moving'][b],

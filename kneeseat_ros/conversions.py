@@ -16,8 +16,10 @@ frame it means cannot be trusted to mean the femur.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 import math
+from pathlib import Path
+from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -34,7 +36,8 @@ from kneeseat_core.typed import Floats, Pose as PoseArray
 __all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'BadInputError', 'AttitudeDecoder',
            'stamp_ns', 'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped',
            'angles_from_joint_state', 'pose_stamped', 'pose_stamped_for_attitude',
-           'joint_state', 'pose_from_msg', 'mesh_marker', 'diagnostic_status']
+           'joint_state', 'pose_from_msg', 'mesh_marker', 'MARKER_ID_STRIDE',
+           'display_mesh_paths', 'body_markers', 'diagnostic_status']
 
 QUAT_NORM_TOL = 1e3 * TOL.unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
 JOINT_NAMES = ('knee_flexion', 'knee_varus')
@@ -226,6 +229,43 @@ def mesh_marker(marker_id: int, mesh_path: str, frame_id: str, stamp: Time,
     msg.color = ColorRGBA(r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]),
                           a=float(rgba[3]))
     return msg
+
+
+# Marker id of the k-th mesh of the body in slot s (reference 0, bodies 1..): s + STRIDE * k,
+# so a body with one display mesh keeps id s as before multi-mesh bodies.
+MARKER_ID_STRIDE = 1000
+
+
+def display_mesh_paths(entry: Mapping[str, Any], table_dir: Path) -> tuple[str, ...]:
+    """Absolute mesh files to draw for a table metadata body (or reference) entry.
+
+    Its `display_meshes`, else its `display_mesh`, else its collision meshes (`meshes`,
+    else `mesh`: tables written before multi-mesh bodies have only the singular keys).
+    Relative paths are taken from `table_dir`.
+    """
+    def paths(key_list: str, key_one: str) -> list[str]:
+        listed = [m.get('path') for m in entry.get(key_list) or [] if isinstance(m, Mapping)]
+        listed = [p for p in listed if p]
+        return listed or ([str(entry[key_one])] if entry.get(key_one) else [])
+
+    names = paths('display_meshes', 'display_mesh') or paths('meshes', 'mesh')
+    out = []
+    for name in names:
+        path = Path(str(name)).expanduser()
+        out.append(str(path if path.is_absolute() else (table_dir / path).resolve()))
+    return tuple(out)
+
+
+def body_markers(slot: int, mesh_paths: Sequence[str], frame_id: str, stamp: Time,
+                 position_m: Floats | Sequence[float] = (0.0, 0.0, 0.0),
+                 orientation_xyzw: Floats | Sequence[float] = (0.0, 0.0, 0.0, 1.0),
+                 rgba: Sequence[float] = (0.9, 0.9, 0.85, 1.0)) -> list[Marker]:
+    """One `mesh_marker` per mesh file of a body, all at the body's pose and colour.
+
+    Ids are slot + MARKER_ID_STRIDE * k for the k-th file (slot 0 = the reference).
+    """
+    return [mesh_marker(slot + MARKER_ID_STRIDE * k, path, frame_id, stamp, position_m,
+                        orientation_xyzw, rgba) for k, path in enumerate(mesh_paths)]
 
 
 def diagnostic_status(name: str, level: bytes, message: str, hardware_id: str,

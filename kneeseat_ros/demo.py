@@ -1,12 +1,15 @@
-"""`python -m kneeseat_ros.demo --out DIR`: the whole pipeline on the embedded default knee.
+"""`python -m kneeseat_ros.demo --out DIR`: the whole pipeline on the default or natural knee.
 
 Phases (each timed; `scripts/demo` runs `scripts/setup` first and passes its time in):
 
-1. table: write the default knee's meshes into `DIR/default_knee/` and build its table
-   `DIR/default_knee_<step>deg.npz` on a `step`-degree grid (2 by default, so that a fresh
-   machine stays well under 3 minutes; `--full-grid` uses the patent's 1 degree). A table
-   that is already there is reused when `read_table` accepts it, it was built from these
-   meshes and it has the requested grid; otherwise it is rebuilt.
+1. table: `--knee default` (the default) writes the embedded knee's meshes into
+   `DIR/default_knee/`; `--knee natural` uses `config/natural_knee.yaml` with the natural
+   knee's meshes (its `mesh_dir`, or `--mesh-dir`; without them the demo stops with one
+   line, exit code 2). The table `DIR/<config name>_<step>deg.npz` is built on a
+   `step`-degree grid (2 by default, so that a fresh machine stays well under 3 minutes;
+   `--full-grid` uses the patent's 1 degree). A table that is already there is reused
+   when `read_table` accepts it, it was built from these meshes and it has the requested
+   grid; otherwise it is rebuilt.
 2. server: `table_server` as a child process with `record:=DIR/sessions`; ready when its
    first `/diagnostics` message arrives (the demo subscribes to it).
 3. replay: `replay` of the shipped angle bag `data/angle_bags/gait_demo` (10 s gait cycle,
@@ -49,7 +52,7 @@ from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 
 from kneeseat_core.build import build_table, executor_for, materialise_default_knee
-from kneeseat_core.errors import KneeseatError, MeshError, TableError
+from kneeseat_core.errors import ConfigError, KneeseatError, MeshError, TableError
 from kneeseat_core.geometry import matrix_from_quat
 from kneeseat_core.knee import KneeConfig, load_config
 from kneeseat_core.plots import write_png
@@ -58,7 +61,8 @@ from kneeseat_core.table import PoseTable, read_table
 from kneeseat_core.typed import Floats
 from kneeseat_ros.conversions import stamp_ns
 
-__all__ = ['DemoError', 'DEFAULT_OUT', 'DEFAULT_STEP_DEG', 'PLOT_NAME', 'PLOT_SIZE_PX',
+__all__ = ['DemoError', 'DataMissing', 'KNEES', 'NATURAL_CONFIG', 'DEFAULT_OUT',
+           'DEFAULT_STEP_DEG', 'PLOT_NAME', 'PLOT_SIZE_PX',
            'SessionStats', 'prepare_table', 'demo_bag', 'read_session', 'plot_session',
            'run', 'main']
 
@@ -71,6 +75,8 @@ PLOT_DPI = 100
 PLOT_SIZE_PX = (1400, 900)             # (width, height) of the session PNG
 MIN_SPIN_SPAN_DEG = 1.0                # spin axes show at least this range
 SHIPPED_BAG = Path(__file__).resolve().parents[1] / 'data' / 'angle_bags' / 'gait_demo'
+NATURAL_CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'natural_knee.yaml'
+KNEES = ('default', 'natural')
 POSE_TOPIC = '/knee/pose'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 STATUS_NAME = 'kneeseat table_server'  # table_server.STATUS_NAME (not imported: no node here)
@@ -90,19 +96,34 @@ class _Stop(Exception):
 
 
 # ----------------------------------------------------------------------------- phase 1
-def _demo_config(knee_dir: Path, step_deg: float) -> KneeConfig:
-    config = materialise_default_knee(knee_dir)
+class DataMissing(KneeseatError):
+    """The chosen knee's meshes are not where its config says (exit code 2)."""
+
+
+def _demo_config(out_dir: Path, step_deg: float, knee: str = 'default',
+                 mesh_dir: Path | None = None) -> KneeConfig:
     grid = {'flexion_deg': [*FLEXION_RANGE_DEG, step_deg],
             'varus_deg': [*VARUS_RANGE_DEG, step_deg]}
-    return load_config(config, config.parent, {'grid': grid})
+    if knee == 'default':
+        config = materialise_default_knee(out_dir / 'default_knee')
+        return load_config(config, config.parent, {'grid': grid})
+    if knee != 'natural':
+        raise ConfigError(f"knee {knee!r} is not a demo knee; use {' or '.join(KNEES)}")
+    if not NATURAL_CONFIG.is_file():
+        raise DataMissing(f'{NATURAL_CONFIG} not found: --knee natural runs from the '
+                          'repository (config/natural_knee.yaml)')
+    try:
+        return load_config(NATURAL_CONFIG, mesh_dir, {'grid': grid})
+    except ConfigError as err:
+        raise DataMissing(f'--knee natural needs the natural knee meshes: {err}') from None
 
 
 def _reusable(path: Path, config: KneeConfig) -> tuple[PoseTable | None, str]:
     """The table at `path` if it can be reused for `config`, else (None, why not)."""
     if not path.exists():
         return None, 'no table yet'
-    meshes = {config.reference.name: config.reference.mesh,
-              **{b.name: b.mesh for b in config.bodies}}
+    meshes = {config.reference.name: list(config.reference.meshes),
+              **{b.name: list(b.meshes) for b in config.bodies}}
     try:
         table = read_table(path, meshes)
     except (TableError, MeshError) as err:
@@ -116,22 +137,26 @@ def _reusable(path: Path, config: KneeConfig) -> tuple[PoseTable | None, str]:
 
 
 def prepare_table(out_dir: Path, step_deg: float, workers: int,
-                  show_progress: bool = True) -> tuple[Path, PoseTable, str]:
-    """Build the default knee's table on a `step_deg` grid in `out_dir`, or reuse it.
+                  show_progress: bool = True, knee: str = 'default',
+                  mesh_dir: Path | None = None) -> tuple[Path, PoseTable, str]:
+    """Build the chosen knee's table on a `step_deg` grid in `out_dir`, or reuse it.
 
     Args:
-        out_dir: demo directory; meshes go to `out_dir/default_knee/`.
+        out_dir: demo directory; the default knee's meshes go to `out_dir/default_knee/`.
         step_deg: grid step (deg) for flexion 0..-90 and varus -10..10; must divide 10.
         workers: build processes.
         show_progress: tqdm bar on stderr while building.
+        knee: 'default' (embedded) or 'natural' (config/natural_knee.yaml).
+        mesh_dir: the natural knee's mesh directory instead of its config's.
     Returns:
         The table path, the verified table, and what happened ('built ...' or 'reused ...').
     Raises:
+        DataMissing: the natural knee's meshes are not there.
         ConfigError: the step does not divide the grid ranges.
         KneeseatError: the build failed.
     """
-    config = _demo_config(out_dir / 'default_knee', step_deg)
-    path = out_dir / f'default_knee_{step_deg:g}deg.npz'
+    config = _demo_config(out_dir, step_deg, knee, mesh_dir)
+    path = out_dir / f'{config.name}_{step_deg:g}deg.npz'
     table, why = _reusable(path, config)
     if table is not None:
         return path, table, why
@@ -476,7 +501,8 @@ def run(args: argparse.Namespace) -> int:
     if args.bag is not None:
         load_messages(args.bag, [POSE_TOPIC])        # a bad --bag fails before the build
     t = time.monotonic()
-    table_path, table, how = prepare_table(out, step, args.workers, not args.quiet)
+    table_path, table, how = prepare_table(out, step, args.workers, not args.quiet,
+                                           args.knee, args.mesh_dir)
     timings['table'] = time.monotonic() - t
     print(f'demo: table {table_path} ({how}, {timings["table"]:.1f} s)', flush=True)
     bag = args.bag if args.bag is not None else demo_bag(out, table)
@@ -618,11 +644,17 @@ def _step_arg(text: str) -> float:
 def build_parser() -> argparse.ArgumentParser:
     """The `python -m kneeseat_ros.demo` command line."""
     p = argparse.ArgumentParser(
-        prog='demo', description='Full kneeseat demo on the embedded default knee: build the '
-        'table, serve it with recording on, replay the gait angle bag through it, then '
-        'summarise and plot the recorded session.')
+        prog='demo', description='Full kneeseat demo on a knee: build the table, serve it '
+        'with recording on, replay the gait angle bag through it, then summarise and plot '
+        'the recorded session.')
     p.add_argument('--out', type=Path, default=DEFAULT_OUT,
                    help=f'demo directory (default {DEFAULT_OUT})')
+    p.add_argument('--knee', choices=KNEES, default='default',
+                   help='default: the embedded procedural knee; natural: the natural knee '
+                   '(config/natural_knee.yaml; needs its meshes)')
+    p.add_argument('--mesh-dir', type=Path, default=None,
+                   help="directory of the natural knee meshes (default: the config's "
+                   'mesh_dir)')
     grid = p.add_mutually_exclusive_group()
     grid.add_argument('--grid-step-deg', type=_step_arg, default=DEFAULT_STEP_DEG,
                       help=f'table grid step in degrees (default {DEFAULT_STEP_DEG:g}: a '
@@ -651,6 +683,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with _sigterm_unwinds():
             return run(args)
+    except DataMissing as err:
+        print(f'demo: error: {err}', file=sys.stderr)
+        return 2
     except KneeseatError as err:
         print(f'demo: error: {err}', file=sys.stderr)
         return 1

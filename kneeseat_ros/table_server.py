@@ -10,7 +10,8 @@ Topics (DESIGN.md "ROS 2 node"; rename them by remapping, never by parameter):
   stamp = the input's stamp)
 - out `/knee/markers` (visualization_msgs/MarkerArray) when `publish_markers` is true:
   published at `marker_rate_hz` with the latest answer, not once per answer, so a 1 kHz
-  tracker does not flood RViz/Foxglove; id 0 is the reference body, 1..B the moving ones.
+  tracker does not flood RViz/Foxglove; id 0 is the reference body, 1..B the moving ones,
+  plus 1000 k for a body's k-th further display mesh (conversions.body_markers).
 - out `/diagnostics` every `diagnostics_period_s` (DiagnosticArray, one status
   'kneeseat table_server'); rates and latency percentiles cover the last period,
   counters the whole run. Latency = node clock at publish - input stamp.
@@ -59,7 +60,7 @@ from kneeseat_core.errors import ConfigError, KneeseatError, OutOfRangeError, Ta
 from kneeseat_core.table import Lookup, PoseTable, read_table
 from kneeseat_ros.conversions import (
     angles_from_joint_state, angles_from_pose_stamped, AttitudeDecoder, BadInputError,
-    diagnostic_status, DROP_REASONS, mesh_marker, pose_stamped, stamp_ns)
+    body_markers, diagnostic_status, display_mesh_paths, DROP_REASONS, pose_stamped, stamp_ns)
 
 __all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'STATUS_NAME', 'ServerParams', 'TableServer',
            'load_table', 'main']
@@ -146,15 +147,6 @@ def load_table(path: Path) -> PoseTable:
     return table
 
 
-def _mesh_path(entry: dict[str, Any], table_path: Path) -> str | None:
-    """Absolute display mesh path of a metadata body entry (display_mesh, else mesh)."""
-    name = entry.get('display_mesh') or entry.get('mesh')
-    if not name:
-        return None
-    path = Path(str(name)).expanduser()
-    return str(path if path.is_absolute() else (table_path.parent / path).resolve())
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class _Served:
     """A loaded table and everything derived from it that the hot path needs."""
@@ -164,7 +156,7 @@ class _Served:
     frame: str
     decoder: AttitudeDecoder
     bodies: tuple[str, ...]
-    meshes: tuple[str | None, ...]     # reference first, then the bodies
+    meshes: tuple[tuple[str, ...], ...]     # display mesh files: reference, then bodies
     bounds_deg: tuple[float, float, float, float]
 
     @classmethod
@@ -172,7 +164,8 @@ class _Served:
         table = load_table(path)
         flexion, varus = np.degrees(table.flexion_rad), np.degrees(table.varus_rad)
         meta = table.metadata
-        meshes = tuple(_mesh_path(e, path) for e in [meta['reference'], *meta['bodies']])
+        meshes = tuple(display_mesh_paths(e, path.parent)
+                       for e in [meta['reference'], *meta['bodies']])
         return cls(table, path, table.reference_frame, AttitudeDecoder(table.axes),
                    table.bodies, meshes, (float(flexion[0]), float(flexion[-1]),
                                           float(varus[0]), float(varus[-1])))
@@ -281,7 +274,7 @@ class TableServer(Node):
         self._body_pubs = [self._pubs[b] for b in self._served.bodies]
 
     def _check_meshes(self) -> None:
-        for path in self._served.meshes:
+        for path in (p for paths in self._served.meshes for p in paths or [None]):
             if path is None or not Path(path).is_file():
                 self._log.warning(f'display mesh {path} not found; its marker will not draw '
                                   '(set display_mesh in the knee config and rebuild)')
@@ -428,16 +421,14 @@ class TableServer(Node):
         served, last = self._served, self._last
         stamp = last[1] if last is not None else self._clock.now().to_msg()
         markers = MarkerArray()
-        if served.meshes[0] is not None:
-            markers.markers.append(mesh_marker(0, served.meshes[0], served.frame, stamp,
-                                               rgba=_REFERENCE_RGBA))
+        markers.markers.extend(body_markers(0, served.meshes[0], served.frame, stamp,
+                                            rgba=_REFERENCE_RGBA))
         if last is not None:
             lookup = last[0]
-            for i, mesh in enumerate(served.meshes[1:]):
-                if mesh is not None:
-                    markers.markers.append(mesh_marker(
-                        i + 1, mesh, served.frame, stamp, lookup.position_m[i],
-                        lookup.orientation_xyzw[i], rgba=_BODY_RGBA[i % len(_BODY_RGBA)]))
+            for i, meshes in enumerate(served.meshes[1:]):
+                markers.markers.extend(body_markers(
+                    i + 1, meshes, served.frame, stamp, lookup.position_m[i],
+                    lookup.orientation_xyzw[i], rgba=_BODY_RGBA[i % len(_BODY_RGBA)]))
         assert self._marker_pub is not None
         self._marker_pub.publish(markers)
         if self._recorder is not None:

@@ -168,7 +168,8 @@ def spine_job(config: KneeConfig, scene: SceneSpec) -> ChainJob:
     attitudes = np.array([config.attitude(body, f, 0.0) for f in flexion])
     params = tuple(config.params(body, f, 0.0) for f in flexion)
     start = pose_from(np.eye(3), -np.asarray(params[0].push) * config.settle.step_m)
-    return ChainJob(scene, 0, ((0, 0), (1, 0), (2, 0)), attitudes, params, start, np.eye(3))
+    return ChainJob(scene, 0, ((0, 0), (1, 0), (2, 0)), attitudes, params, start, np.eye(3),
+                    np.eye(4), np.eye(3))
 
 
 def test_workers_without_the_files_settle_from_shipped_bytes(

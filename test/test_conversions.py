@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
@@ -14,8 +15,9 @@ from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_ros.conversions import (
     angles_from_joint_state, angles_from_pose_stamped, AttitudeDecoder, BadInputError,
-    diagnostic_status, joint_state, mesh_marker, pose_from_msg, pose_stamped,
-    pose_stamped_for_attitude, QUAT_NORM_TOL, stamp_from_ns, stamp_ns)
+    body_markers, diagnostic_status, display_mesh_paths, joint_state, MARKER_ID_STRIDE,
+    mesh_marker, pose_from_msg, pose_stamped, pose_stamped_for_attitude, QUAT_NORM_TOL,
+    stamp_from_ns, stamp_ns)
 
 TKA_AXES = KneeAxes.from_vectors([0, 0, 1], [1, 0, 0], [0, 1, 0])
 STAMP = stamp_from_ns(1_700_000_000_123_456_789)
@@ -135,3 +137,26 @@ def test_mesh_marker_and_diagnostic_status() -> None:
     assert status.level == DiagnosticStatus.WARN
     values = {kv.key: kv.value for kv in status.values}
     assert values == {'rate_hz': '999.988', 'received': '12'}
+
+
+def test_display_meshes_of_old_and_multi_mesh_entries() -> None:
+    here = Path('/tables')
+    old = {'name': 'tibia', 'mesh': 'insert.stl', 'mesh_sha256': 'ab', 'display_mesh': None}
+    assert display_mesh_paths(old, here) == ('/tables/insert.stl',)
+    assert display_mesh_paths(dict(old, display_mesh='/m/bone.stl'), here) == ('/m/bone.stl',)
+    new = dict(old, meshes=[{'path': '/m/cart.stl', 'sha256': 'a'},
+                            {'path': '/m/men.stl', 'sha256': 'b'}], display_meshes=[])
+    assert display_mesh_paths(new, here) == ('/m/cart.stl', '/m/men.stl')
+    new['display_meshes'] = [{'path': 'bone.stl', 'sha256': 'c'},
+                             {'path': '/m/men.stl', 'sha256': 'b'}]
+    assert display_mesh_paths(new, here) == ('/tables/bone.stl', '/m/men.stl')
+    assert display_mesh_paths({'name': 'femur'}, here) == ()
+
+
+def test_one_marker_per_mesh_of_a_body() -> None:
+    markers = body_markers(2, ['/m/bone.stl', '/m/men.stl'], 'femur', STAMP, (0.0, 0.02, 0.0),
+                           (0.0, 0.0, 0.0, 1.0), (0.1, 0.2, 0.3, 1.0))
+    assert [m.id for m in markers] == [2, 2 + MARKER_ID_STRIDE]
+    assert [m.mesh_resource for m in markers] == ['file:///m/bone.stl', 'file:///m/men.stl']
+    assert all(m.pose.position.y == 0.02 and m.color.g == pytest.approx(0.2) for m in markers)
+    assert body_markers(0, [], 'femur', STAMP) == []

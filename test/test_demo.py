@@ -206,3 +206,34 @@ def test_bad_bag_fails_before_the_build(tmp_path: Path,
     assert err.startswith('demo: error: bag ') and err.count('\n') == 1, err
     assert 'does not exist' in err
     assert not list(tmp_path.glob('*.npz')) and not (tmp_path / 'default_knee').exists()
+
+
+def test_natural_knee_without_its_meshes_is_one_line_and_exit_2(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(['--out', str(tmp_path / 'out'), '--knee', 'natural', '--mesh-dir',
+                 str(tmp_path / 'nowhere'), '--quiet'])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.startswith('demo: error: --knee natural needs the natural knee meshes: ')
+    assert err.count('\n') == 1 and 'nowhere' in err and 'Traceback' not in err
+    assert not list((tmp_path / 'out').glob('*.npz'))
+
+
+NATURAL_DATA = REPO.parent / 'shared' / 'data' / 'natural_knee'
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.skipif(not (NATURAL_DATA / 'femur_cartilage.stl').is_file(),
+                    reason=f'natural knee meshes not found at {NATURAL_DATA}')
+def test_demo_on_the_natural_knee(tmp_path: Path) -> None:
+    out = tmp_path / 'demo'
+    run = run_demo(out, '--knee', 'natural')
+    assert run.returncode == 0, run.stderr[-3000:]
+    table = read_table(out / f'natural_knee_{STEP_DEG:g}deg.npz')
+    assert table.bodies == ('tibia', 'patella')
+    assert len(table.metadata['bodies'][0]['meshes']) == 3        # cartilage + two menisci
+    sessions = sorted((out / 'sessions').iterdir())
+    assert len(sessions) == 1
+    check_session(sessions[0], table, len(load_messages(SHIPPED)))
+    assert int(summary_value(run.stdout, r'dropped (\d+)')) == 0

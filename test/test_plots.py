@@ -14,8 +14,10 @@ import trimesh
 from kneeseat_core.errors import ConfigError, KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PANEL_IN,
-                                 PNG_KEY_NONCONVERGED, plot_table, render_table,
+                                 PNG_KEY_NONCONVERGED, plot_convergence_map, plot_table,
+                                 render_table,
                                  RENDER_EXTRA_IN, RENDER_PANEL_IN)
+from kneeseat_core.status import Status
 from kneeseat_core.table import PoseTable
 
 # TKA knee frame: X anterior, Y superior, Z lateral; flexion about Z, varus about X.
@@ -269,3 +271,20 @@ def test_simplification_keeps_the_shape_within_budget() -> None:
     assert np.allclose(vertices.max(axis=0), sphere.bounds[1], atol=2 * cell)
     radius = np.linalg.norm(vertices, axis=1)
     assert np.all(np.abs(radius - 0.03) < cell)                           # still a sphere
+
+
+def test_convergence_map_colours_cells_by_reason(tmp_path: Path) -> None:
+    table = make_table(nonconverged=4)
+    tibia_bad = np.argwhere(~np.asarray(table.converged[0]))
+    codes = np.where(np.asarray(table.converged), Status.REST, Status.ENVELOPE)
+    for k, (i, j) in enumerate(tibia_bad):
+        codes[0, i, j] = Status.LOST if k % 2 else Status.CAP
+    recorded = make_table(nonconverged=4, meta={'cells': {'status': codes.tolist()}})
+    out = plot_convergence_map(recorded, tmp_path / 'map.png')
+    assert png_text(out)[PNG_KEY_NONCONVERGED] == '4'
+    # a table written before reasons were recorded still maps its non-converged cells
+    assert png_text(plot_convergence_map(table, tmp_path / 'old.png'))[PNG_KEY_NONCONVERGED] \
+        == '4'
+    assert out.read_bytes() != (tmp_path / 'old.png').read_bytes()   # other legend, colours
+    with pytest.raises(ConfigError, match=r'does not end in \.png'):
+        plot_convergence_map(table, tmp_path / 'map.jpg')

@@ -1,0 +1,212 @@
+"""The natural knee (issue 11): its configs, and a coarse table checked at rest.
+
+The meshes live outside the repository (../shared/data/natural_knee); without them these
+tests skip. The rest check uses python-fcl objects of its own and nothing of the settle but
+its answers: at every converged cell the body touches the femur (one resolution further
+along the cell's push collides) without penetrating it, and no admissible move - a slide
+across the push (not along a locked slide), a turn about the push through the body's
+centroid, or both - lets it go one resolution further along the push.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator
+import itertools
+import math
+from pathlib import Path
+
+import fcl
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from conftest import REPO, SHARED_DATA
+from kneeseat_core.cli import main
+from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_about
+from kneeseat_core.kinematics import knee_kinematics, table_landmarks
+from kneeseat_core.knee import KneeConfig, load_config
+from kneeseat_core.table import PoseTable, read_table
+
+DATA = SHARED_DATA / 'natural_knee'
+CONFIG = REPO / 'config' / 'natural_knee.yaml'
+NO_MENISCI = REPO / 'config' / 'natural_knee_no_menisci.yaml'
+GRID = ('--flexion-grid', '0,-90,30', '--varus-grid', '-10,10,10')
+SLIDES_M = (0.2e-3, 0.5e-3)
+TURNS_DEG = (0.2, 0.5)
+N_DIRECTIONS = 8
+
+pytestmark = pytest.mark.skipif(
+    not (DATA / 'femur_cartilage.stl').is_file(),
+    reason=f'natural knee meshes not found at {DATA} (../shared/data/natural_knee next to '
+    'the repository); they are not shipped in the repo')
+
+
+def test_configs_load_with_every_mesh() -> None:
+    config = load_config(CONFIG)
+    tibia, patella = config.bodies
+    assert [p.name for p in tibia.meshes] == ['tibia_cartilage.stl', 'meniscus_medial.stl',
+                                              'meniscus_lateral.stl']
+    assert [p.name for p in tibia.display_meshes] == ['tibia_bone.stl', 'meniscus_medial.stl',
+                                                      'meniscus_lateral.stl']
+    assert config.reference.display_mesh is not None
+    assert config.reference.display_mesh.name == 'femur_bone.stl'
+    assert patella.locked_slide == (0.0, 1.0, 0.0) and patella.varus_fraction == 0.0
+    assert patella.flexion_fraction == 0.65 and patella.push_flexion_fraction == 0.67
+    above_posterior = math.degrees(math.atan2(patella.push[1], -patella.push[0]))
+    assert above_posterior == pytest.approx(2.9, abs=0.05)
+    assert len(config.flexion_rad) == 91 and len(config.varus_rad) == 21
+    assert config.settle.resolution_m == 1e-4 and config.settle.step_m == 1e-3
+
+
+def test_the_variant_differs_only_by_the_menisci() -> None:
+    full, bare = (yaml.safe_load(p.read_text()) for p in (CONFIG, NO_MENISCI))
+    assert bare['bodies'][0]['mesh'] == 'tibia_cartilage.stl'
+    assert bare['bodies'][0]['display_mesh'] == 'tibia_bone.stl'
+    for data in (full, bare):
+        del data['name'], data['bodies'][0]['mesh'], data['bodies'][0]['display_mesh']
+    assert full == bare
+    assert load_config(NO_MENISCI).bodies[0].meshes[0].name == 'tibia_cartilage.stl'
+
+
+class Probe:
+    """python-fcl objects of our own: the femoral cartilage and one moving body."""
+
+    def __init__(self, fixed: list[Path], moving: list[Path]) -> None:
+        self.fixed, self.moving = self._object(fixed), self._object(moving)
+
+    @staticmethod
+    def _object(paths: list[Path]) -> fcl.CollisionObject:
+        mesh = trimesh.util.concatenate([trimesh.load_mesh(p, process=False) for p in paths])
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
+        bvh.addSubModel(np.asarray(mesh.vertices, dtype=np.float64),
+                        np.asarray(mesh.faces, dtype=np.int64))
+        bvh.endModel()
+        return fcl.CollisionObject(bvh, fcl.Transform())
+
+    def collides(self, pose: np.ndarray) -> bool:
+        self.moving.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))
+        return fcl.collide(self.moving, self.fixed, fcl.CollisionRequest(),
+                           fcl.CollisionResult()) > 0
+
+
+@pytest.fixture(scope='module')
+def built(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[KneeConfig, PoseTable,
+                                                                      str]]:
+    """(config, table, build stdout) of a coarse natural-knee build with 2 workers."""
+    import contextlib
+    import io
+    out = tmp_path_factory.mktemp('natural') / 'natural.npz'
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        code = main(['build', str(CONFIG), '--out', str(out), '--workers', '2', '--quiet',
+                     *GRID])
+    assert code == 0
+    config = load_config(CONFIG, overrides={'grid': {'flexion_deg': [0, -90, 30],
+                                                     'varus_deg': [-10, 10, 10]}})
+    yield config, read_table(out, meshes={b.name: list(b.meshes) for b in
+                                          (config.reference, *config.bodies)}), text.getvalue()
+
+
+def probes(pose: np.ndarray, push: np.ndarray, lock: np.ndarray | None,
+           centre: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """Slides across the push (not along `lock`), turns about the push through `centre`,
+    and every slide with every turn; each keeps the pose's depth along the push."""
+    plane = np.linalg.svd(np.eye(3) - np.outer(push, push))[0][:, :2].T     # (2, 3)
+    slides = []
+    for k, size in itertools.product(range(N_DIRECTIONS), SLIDES_M):
+        phi = 2.0 * math.pi * k / N_DIRECTIONS
+        vector = size * (math.cos(phi) * plane[0] + math.sin(phi) * plane[1])
+        if lock is not None:
+            vector -= (vector @ lock) * lock
+            if np.linalg.norm(vector) < 0.5 * size:
+                continue
+        slides.append((f'slide {vector * 1e3} mm', vector))
+    turns = []
+    for deg, sign in itertools.product(TURNS_DEG, (-1, 1)):
+        rot = rotation_about(push, math.radians(sign * deg))
+        turns.append((f'turn {sign * deg:+.1f} deg',
+                      pose_from(rot @ pose[:3, :3], rot @ (pose[:3, 3] - centre) + centre)))
+    out = [(label, pose_from(pose[:3, :3], pose[:3, 3] + v)) for label, v in slides]
+    out += turns
+    out += [(f'{s} + {t}', pose_from(q[:3, :3], q[:3, 3] + v))
+            for (s, v), (t, q) in itertools.product(slides, turns)]
+    return out
+
+
+def rest_failures(config: KneeConfig, table: PoseTable) -> tuple[int, list[str], list[str]]:
+    """(converged cells checked, cells not touching at the resolution, cells a probe lifts)."""
+    resolution = config.settle.resolution_m
+    fixed = list(config.reference.meshes)
+    checked, touching, lifted = 0, [], []
+    for b, spec in enumerate(config.bodies):
+        probe = Probe(fixed, list(spec.meshes))
+        centroid = np.asarray(trimesh.util.concatenate(
+            [trimesh.load_mesh(p) for p in spec.meshes]).centroid)
+        for i, j in zip(*np.nonzero(table.converged[b])):
+            params = config.params(spec, float(table.flexion_rad[i]), float(table.varus_rad[j]))
+            push = np.asarray(params.push)
+            lock = None if params.locked_slide is None else np.asarray(params.locked_slide)
+            pose = pose_from(matrix_from_quat(table.orientation_xyzw[b, i, j]),
+                             table.position_m[b, i, j])
+            where = f'{spec.name} flexion {math.degrees(table.flexion_rad[i]):g} varus ' \
+                    f'{math.degrees(table.varus_rad[j]):g}'
+            checked += 1
+            ahead = pose_from(pose[:3, :3], pose[:3, 3] + resolution * push)
+            if probe.collides(pose) or not probe.collides(ahead):
+                touching.append(where)
+                continue
+            centre = pose[:3, :3] @ centroid + pose[:3, 3]
+            for label, moved in probes(pose, push, lock, centre):
+                if not probe.collides(pose_from(moved[:3, :3], moved[:3, 3]
+                                                + resolution * push)):
+                    lifted.append(f'{where}: {label}')
+                    break
+    return checked, touching, lifted
+
+
+@pytest.mark.slow
+def test_coarse_table_converges_and_converged_cells_touch(
+        built: tuple[KneeConfig, PoseTable, str]) -> None:
+    config, table, output = built
+    assert table.converged.mean() >= 0.9, output
+    checked, touching, _ = rest_failures(config, table)
+    assert checked == int(table.converged.sum())
+    assert not touching, f'not touching at the resolution: {touching}'
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason='with the settle engine of this branch (before the '
+                   'settle rewrite) 1 of the 24 converged cells, the tibia at flexion 0 varus '
+                   '10, is lifted by a 0.5 mm slide combined with a 0.5 deg turn '
+                   '(docs/natural_knee.md); expected to pass once the rewritten engine is merged')
+def test_every_converged_cell_passes_the_rest_probes(
+        built: tuple[KneeConfig, PoseTable, str]) -> None:
+    config, table, _ = built
+    _, _, lifted = rest_failures(config, table)
+    assert not lifted, '; '.join(lifted)
+
+
+@pytest.mark.slow
+def test_coarse_build_reports_starts_in_collision_once_per_body(
+        built: tuple[KneeConfig, PoseTable, str]) -> None:
+    _, table, output = built
+    lines = [ln for ln in output.splitlines() if 'start was in collision' in ln]
+    for body in table.bodies:
+        said = [ln for ln in lines if ln.startswith(f'  {body}: ')]
+        cells = table.metadata['backed_out'][body]['cells']
+        assert len(said) == (1 if cells else 0)
+        if cells:
+            assert f'in collision at {cells} cells' in said[0]
+
+
+@pytest.mark.slow
+def test_kinematics_of_the_coarse_table(built: tuple[KneeConfig, PoseTable, str]) -> None:
+    _, table, _ = built
+    kin = knee_kinematics(table, table_landmarks(table))
+    np.testing.assert_allclose(kin.knee_flexion_deg, [0.0, 30.0, 60.0, 90.0])
+    # the patella's attitude is prescribed (0.65 x flexion); the settle only turns it about
+    # its push, which keeps the patellar flexion within a degree of it
+    np.testing.assert_allclose(kin.values['patella_flexion'], 0.65 * kin.knee_flexion_deg,
+                               atol=1.0)
+    assert all(np.isfinite(v).all() for v in kin.values.values())
