@@ -18,8 +18,10 @@ over a small state object (`_Climb`):
   A move that loses depth teaches the contacts that blocked it (D2).
 - `prove`: when the contacts balance (or no move of the finest size is left), probes in
   26 directions (slides, spins and their combinations) at three scales, from the finest
-  move to 16 times it, each lifted by half the resolution, must all collide; a probe that
+  move to 16 times it, each lifted by a quarter resolution, must all collide; a probe that
   gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
+  At the two smaller scales a probe that the near-active patches prove hopeless by a wide
+  margin is not queried.
 - the envelope: the climb may not leave it (D6); where the envelope holds (a config's
   soft-tissue stand-in), the move is kept inside and a rest on its boundary is
   reported as constrained.
@@ -40,13 +42,21 @@ __all__ = ['run_climb']
 
 # A move must deliver this share of the gain its slope promised, measured to an eighth of
 # the promise, or it is undone (so a slope the normals promise but the surfaces do not have
-# is never followed far).
-PROMISE = 0.5
+# is never followed far; a move to the crest of a smooth slope keeps half its promise).
+PROMISE = 0.25
 # The finest contact tolerance a move measures its gain with, in resolutions.
 FINEST_TOL = 1.0 / 1024.0
 # Probe scales, in finest moves (the finest move: one resolution of slide, or a spin
 # whose arc at the farthest vertex is one rotation resolution).
 PROBE_SCALES = (1.0, 4.0, 16.0)
+# A probe succeeds when the moved body is still free lifted by this many resolutions.
+PROBE_LIFT = 0.25
+# Before probing, the pose's contact bracket is narrowed to this many resolutions.
+FINE_PROBE = 1.0 / 64.0
+# Up to this scale, a probe the near-active patches' first-order model proves hopeless (by
+# more than a resolution) is not sent to python-fcl: normals would have to be off by more
+# than 30 degrees to hide a gain at these lengths.
+MODEL_PROBE_SCALE = 4.0
 # The longest single move, in translation steps.
 MAX_MOVE_STEPS = 4.0
 # Before rest is probed, the contact bracket is narrowed to this fraction of the tolerance,
@@ -248,38 +258,49 @@ class _Climb:
         return length
 
     def move(self, direction: Floats, slope: float) -> None:
-        """One line-search step along `direction` (sets `ended` when the climb must stop)."""
+        """One line-search step along `direction` (sets `ended` when the climb must stop).
+
+        A move is kept only if it delivers `PROMISE` of the gain its slope promised,
+        measured: one query asks whether the moved body, lifted by that much (plus what
+        the current pose's own bracket leaves open), is still free. The current bracket is
+        narrowed first to an eighth of the promise, so a promise of a few micrometres is
+        held to a fraction of one and a promise of a millimetre to a quarter resolution;
+        a promise below the finest tolerance only has to not lose depth.
+        """
         s = self.search
         length = self._limit_to_envelope(direction, self.step)
         if length < 0.25 * self.finest:
             self.step = 0.0
             return
         promised = length * slope
-        # measure the gain about as finely as the promise: a gain of a few micrometres is
-        # checked to a fraction of a micrometre, a millimetre to a quarter of a resolution
-        tau = min(self.tol, max(0.125 * promised, FINEST_TOL * s.params.resolution_m))
+        floor_tol = FINEST_TOL * s.params.resolution_m
+        tau = min(self.tol, max(0.125 * promised, floor_tol))
         width = self._narrow(tau)
         target = s.lateral(self.pose, length * direction, self.arm)
-        bracket = s.touch(target, promised, tau)
+        # a promise too small to measure is taken on trust, short of a loss (the step then
+        # doubles into a promise that is measured)
+        kept = PROMISE * promised + width if promised >= 8.0 * floor_tol else -width
+        lifted = translated(target, kept * s.push)
+        if s.collides(lifted):
+            # the move kept less than its promise: past the crest, a contact the patches
+            # did not know (D2: learn it, so that the next direction respects it), or a
+            # slope the normals promise but the surfaces do not have; shorten it
+            floor = s.patches(lifted)
+            grads = self.gradients(floor, target)
+            new_slope = float(np.min(grads @ direction)) if len(grads) else 0.0
+            blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
+            facing = s.facing(floor, s.push)
+            self.learned = self.learned + Contacts(facing.points[blocking],
+                                                   facing.normals[blocking])
+            self.step = length * min(self._crest(slope, new_slope, shrink=0.25), 0.5)
+            return
+        bracket = s.touch(lifted, max(promised - kept, 0.0), tau, free_at_start=True)
         if bracket is None:
             self.ended = (Status.LOST, LOST_CONTACT)
             return
-        depth = s.depth(bracket.free)
-        gain = depth - s.depth(self.pose)
         floor = self._floor_at(bracket.free)
         grads = self.gradients(floor, bracket.free)
         new_slope = float(np.min(grads @ direction)) if len(grads) else slope
-        if depth < self.best - self.tol or gain < PROMISE * promised - tau - width:
-            # the move lost depth (it met a contact the patches did not know: D2, learn it
-            # so that the next direction respects it) or kept less than its promise (past
-            # the crest, or the normals promise a slope the surfaces do not have): shorten
-            if gain < -(tau + width):
-                blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
-                facing = s.facing(floor, s.push)
-                self.learned = self.learned + Contacts(facing.points[blocking],
-                                                       facing.normals[blocking])
-            self.step = length * min(self._crest(slope, new_slope, shrink=0.25), 0.5)
-            return
         self._arrive(bracket, floor)
         if new_slope >= 0.5 * slope:
             self.step = min(2.0 * length, MAX_MOVE_STEPS * s.params.step_m)
@@ -331,16 +352,26 @@ class _Climb:
         """D5: probe around the pose; True when a probe gained (and was followed, or the
         climb ended), False at rest."""
         s = self.search
-        lift = 0.5 * s.params.resolution_m
+        lift = PROBE_LIFT * s.params.resolution_m
         checks_before = s.pair.checks
+        # the pose's own bracket is narrowed first, so a probe free at the lift has gained
+        # at least the lift less a sliver: every probe that succeeds is real progress
+        self._narrow(FINE_PROBE * s.params.resolution_m)
         grads = self.gradients(self.floor)
+        directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
+        model = np.min(grads @ directions.T, axis=0) if len(grads) \
+            else np.zeros(len(directions))
+        order = np.argsort(-model)                       # most promising first
         try:
             for scale in PROBE_SCALES:
                 length = scale * self.finest
-                directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
-                if len(grads):               # most promising first
-                    directions = directions[np.argsort(-np.min(grads @ directions.T, axis=0))]
-                for d in directions:
+                hopeless = np.zeros(len(directions), dtype=bool)
+                if scale <= MODEL_PROBE_SCALE:
+                    # the near-active patches bound the travel after the probe by
+                    # tol + length * model (plus curvature); where that is short of the lift
+                    # by more than a resolution, the probe cannot gain: no query needed
+                    hopeless = length * model < lift - self.tol - s.params.resolution_m
+                for d in directions[order[~hopeless[order]]]:
                     if s.params.envelope_holds and \
                             self._limit_to_envelope(d, length) < length:
                         continue

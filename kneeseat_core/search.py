@@ -325,43 +325,33 @@ class Search:
             travelled += step
         return None
 
-    def touch(self, pose: Pose, guess_m: float, tol_m: float) -> Bracket | None:
+    def touch(self, pose: Pose, guess_m: float, tol_m: float,
+              free_at_start: bool = False) -> Bracket | None:
         """Exact contact along Δ from a lateral pose whose contact is expected `guess_m`
-        further along Δ (negative: it overlaps). Brackets around the guess, widening by
-        doubling, then bisects to `tol_m`. None: no contact within the travel limit."""
-        width = tol_m
-        free_t: float | None = None
-        hit_t: float | None = None
-        guess = max(guess_m, 0.0)
-        if guess > tol_m:
-            t = guess + tol_m
-            if self.collides(translated(pose, t * self.push)):
-                hit_t = t
-            else:
-                free_t = t
-        if hit_t is None and free_t is None:
-            if self.collides(pose):
-                hit_t = 0.0
-            else:
-                free_t = 0.0
+        further along Δ (negative: it overlaps; `free_at_start`: `pose` is known free).
+        Probes just past the guess, then just short of it, widening by doubling until the
+        contact is bracketed, then bisects to `tol_m`. None: no contact within the travel
+        limit (or a body buried beyond it)."""
+        lo: float | None = 0.0 if free_at_start else None     # free here
+        hi: float | None = None                               # touching here
         limit = self.travel_limit(pose)
-        while free_t is None:                       # retreat until free
-            t = hit_t - width                       # type: ignore[operator]
-            if -t > 2.0 * limit:
+        width = 2.0 * tol_m
+        first = guess_m + tol_m if guess_m > tol_m else 0.0
+        if free_at_start and first <= 0.0:
+            first = tol_m
+        t = first
+        while lo is None or hi is None:
+            if abs(t) > 2.0 * limit:
                 return None
             if self.collides(translated(pose, t * self.push)):
-                hit_t, width = t, 2.0 * width
+                hi = t
             else:
-                free_t = t
-        while hit_t is None:                        # advance until touching (no tunnelling)
-            t = free_t + min(width, self.params.step_m)
-            if t > limit:
-                return None
-            if self.collides(translated(pose, t * self.push)):
-                hit_t = t
-            else:
-                free_t, width = t, 2.0 * width
-        lo, hi = free_t, hit_t
+                lo = t
+            if hi is None:        # advance (steps no longer than the translation step)
+                t = lo + min(width, self.params.step_m)   # type: ignore[operator]
+            elif lo is None:      # retreat
+                t = hi - width
+            width *= 2.0
         while hi - lo > tol_m:
             mid = 0.5 * (lo + hi)
             if self.collides(translated(pose, mid * self.push)):
