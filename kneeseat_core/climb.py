@@ -109,6 +109,7 @@ class _Climb:
     proof_checks: int = 0
     stalled_at: Pose | None = None   # where the climb last ran out of moves
     ended: tuple[int, str] | None = None   # (Status code, reason) once the climb must stop
+    trusted: bool = False      # the last measured move kept its promise (see `move`)
 
     def _moved_since_stall(self) -> bool:
         """True unless the pose is within one finest move of where the climb last stalled."""
@@ -264,8 +265,10 @@ class _Climb:
         measured: one query asks whether the moved body, lifted by that much (plus what
         the current pose's own bracket leaves open), is still free. The current bracket is
         narrowed first to an eighth of the promise, so a promise of a few micrometres is
-        held to a fraction of one and a promise of a millimetre to a quarter resolution;
-        a promise below the finest tolerance only has to not lose depth.
+        held to a fraction of one and a promise of a millimetre to a quarter resolution.
+        A promise too small to measure is taken on trust (it only has to not lose depth),
+        and only while the last measured promise was kept: normals that promised a slope
+        the surfaces do not have are not followed through the flats they stand on.
         """
         s = self.search
         length = self._limit_to_envelope(direction, self.step)
@@ -277,9 +280,11 @@ class _Climb:
         tau = min(self.tol, max(0.125 * promised, floor_tol))
         width = self._narrow(tau)
         target = s.lateral(self.pose, length * direction, self.arm)
-        # a promise too small to measure is taken on trust, short of a loss (the step then
-        # doubles into a promise that is measured)
-        kept = PROMISE * promised + width if promised >= 8.0 * floor_tol else -width
+        measured = promised >= 8.0 * floor_tol
+        if not (measured or self.trusted):
+            self.step = 0.5 * length
+            return
+        kept = PROMISE * promised + width if measured else -width
         lifted = translated(target, kept * s.push)
         if s.collides(lifted):
             # the move kept less than its promise: past the crest, a contact the patches
@@ -292,6 +297,10 @@ class _Climb:
             facing = s.facing(floor, s.push)
             self.learned = self.learned + Contacts(facing.points[blocking],
                                                    facing.normals[blocking])
+            if measured and new_slope >= 0.5 * slope:
+                # nothing blocks and the normals there still promise the slope (this is
+                # no overshoot of a crest): the surfaces do not have that slope
+                self.trusted = False
             self.step = length * min(self._crest(slope, new_slope, shrink=0.25), 0.5)
             return
         bracket = s.touch(lifted, max(promised - kept, 0.0), tau, free_at_start=True)
@@ -301,6 +310,8 @@ class _Climb:
         floor = self._floor_at(bracket.free)
         grads = self.gradients(floor, bracket.free)
         new_slope = float(np.min(grads @ direction)) if len(grads) else slope
+        if measured:
+            self.trusted = True           # the surfaces kept a measured promise
         self._arrive(bracket, floor)
         if new_slope >= 0.5 * slope:
             self.step = min(2.0 * length, MAX_MOVE_STEPS * s.params.step_m)
