@@ -31,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import itertools
 import math
+import time
 
 import numpy as np
 
@@ -107,6 +108,7 @@ class _Climb:
     best: float                # deepest depth reached so far (m along Δ)
     learned: Contacts          # blocking patches taught by a rejected move
     proof_checks: int = 0
+    proof_s: float = 0.0
     stalled_at: Pose | None = None   # where the climb last ran out of moves
     ended: tuple[int, str] | None = None   # (Status code, reason) once the climb must stop
     trusted: bool = False      # the last measured move kept its promise (see `move`)
@@ -364,7 +366,7 @@ class _Climb:
         climb ended), False at rest."""
         s = self.search
         lift = PROBE_LIFT * s.params.resolution_m
-        checks_before = s.pair.checks
+        checks_before, started = s.pair.checks, time.perf_counter()
         # the pose's own bracket is narrowed first, so a probe free at the lift has gained
         # at least the lift less a sliver: every probe that succeeds is real progress
         self._narrow(FINE_PROBE * s.params.resolution_m)
@@ -393,6 +395,7 @@ class _Climb:
                     return True
         finally:
             self.proof_checks += s.pair.checks - checks_before
+            self.proof_s += time.perf_counter() - started
         return False
 
     def _follow(self, direction: Floats, length: float, lift: float) -> None:
@@ -459,4 +462,4 @@ def run_climb(search: Search, bracket: Bracket) -> SettleResult:
     status, reason = climb.ended or (
         Status.CAP, f'iteration cap ({p.max_iterations}) reached before rest was verified')
     return search.result(climb.pose, status, reason, climb.floor,
-                         proof_checks=climb.proof_checks)
+                         proof_checks=climb.proof_checks, proof_s=climb.proof_s)

@@ -120,6 +120,7 @@ class SettleResult:
     backed_out_m: float = 0.0   # distance the start was backed out along -Δ
     status: int = Status.REST   # `Status` code
     proof_checks: int = 0       # collision queries spent proving rest (default method)
+    proof_s: float = 0.0        # wall time of those proofs (s)
 
     @property
     def constrained(self) -> bool:
@@ -361,12 +362,12 @@ class Search:
         return Bracket(translated(pose, lo * self.push), translated(pose, hi * self.push))
 
     def result(self, pose: Pose, status: int, reason: str, contacts: Contacts,
-               proof_checks: int = 0) -> SettleResult:
+               proof_checks: int = 0, proof_s: float = 0.0) -> SettleResult:
         """Package the end of a settle (`status`: a `Status` code)."""
         return SettleResult(pose, status in (Status.REST, Status.CONSTRAINED), reason,
                             self.iterations, self.pair.checks, contacts,
                             time.perf_counter() - self.started, self.pair.fcl_s,
-                            self.backed_out_m, status, proof_checks)
+                            self.backed_out_m, status, proof_checks, proof_s)
 
 
 # Normals within a patch that spread more than this from its mean split it (a crease).

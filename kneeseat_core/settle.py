@@ -20,16 +20,20 @@ named where it is made:
      of the contact patches' depth gradients (first-order quasi-static equilibrium).
   D2 blocked moves teach: a move that loses depth adds the contacts that blocked it to the
      set, so the next direction respects them (this frees a wedged body).
-  D3 slope, not gain: a move is kept while it does not lose depth beyond the contact
-     tolerance, its length doubles while the slope ahead stays steep and is cut to the
-     crest's secant estimate when the slope turns, so a shallow slope is climbed whatever
-     each step gains. Exact contact is found to a quarter of the resolution.
+  D3 slope, not gain: a move's length doubles while the slope ahead stays steep and is cut
+     to the crest's secant estimate when the slope turns, so a shallow slope is climbed
+     whatever each step gains; a move is kept when it delivers a quarter of the gain its
+     slope promised, measured to an eighth of the promise (one query: still free lifted by
+     that much), and a promise too small to measure is taken on trust only while the last
+     measured one was kept. Exact contact is found to a quarter of the resolution.
   D4 rotation resolution is an arc at the farthest vertex (resolution / radius) unless
      given explicitly, so a rotation can always be refined below one step.
-  D5 rest is proved, not assumed: when the patches balance, probes (26 directions of
-     slides, spins and their combinations at 1, 4 and 16 times the finest move, lifted by
-     half the resolution) must all collide; a probe that gains is followed outward while it
-     gains, and the climb resumes.
+  D5 rest is proved, not assumed: when the patches balance (a slope that could not gain
+     one resolution across the envelope is flat), probes - 26 directions of slides, spins
+     and their combinations at 1, 4 and 16 times the finest move, lifted by a quarter
+     resolution from a bracket narrowed to res/64 - must all collide; a probe that gains is
+     followed outward while it gains, and the climb resumes. D1b: when the hull balances
+     only because one patch sits at its own crest, the body spins about that patch.
   D6 honest ends: "converged" only after D5. Not converged: the iteration cap; lost contact
      (the body slid off the fixed body); leaving the search envelope (`max_slide_m` across
      the push and `max_spin_rad` about it, from the anchor pose): no rest near the start.
