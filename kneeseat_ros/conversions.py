@@ -21,7 +21,7 @@ import math
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseStamped
+from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
 import numpy as np
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
@@ -34,14 +34,16 @@ from kneeseat_core.typed import Floats, Pose as PoseArray
 __all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'BadInputError', 'AttitudeDecoder',
            'stamp_ns', 'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped',
            'angles_from_joint_state', 'pose_stamped', 'pose_stamped_for_attitude',
-           'joint_state', 'pose_from_msg', 'mesh_marker', 'diagnostic_status']
+           'joint_state', 'pose_from_msg', 'mesh_marker', 'diagnostic_status',
+           'rigid_from_pose_stamped', 'transform_stamped', 'UNSTAMPED']
 
 QUAT_NORM_TOL = 1e3 * TOL.unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
 JOINT_NAMES = ('knee_flexion', 'knee_varus')
 
 # Diagnostics counter names (keys `dropped_<reason>`), in display order.
 DROP_REASONS = ('nonfinite', 'quaternion', 'frame_id', 'joint_names', 'lengths',
-                'out_of_range')
+                'out_of_range', 'unpaired', 'stale')
+UNSTAMPED = 0   # header.stamp of a message nobody stamped (e.g. `ros2 topic pub`'s default)
 
 
 class BadInputError(KneeseatError):
@@ -133,6 +135,45 @@ def angles_from_pose_stamped(msg: PoseStamped, axes: KneeAxes | AttitudeDecoder,
                             'normalised (x, y, z, w)')
     decoder = axes if isinstance(axes, AttitudeDecoder) else AttitudeDecoder(axes)
     return decoder.angles(x / norm, y / norm, z / norm, w / norm)
+
+
+def rigid_from_pose_stamped(msg: PoseStamped, frame_id: str,
+                            what: str) -> tuple[float, float, float, float, float, float, float]:
+    """(px, py, pz, qx, qy, qz, qw) of a tracked rigid body's pose in `frame_id`.
+
+    The quaternion is normalised (within `QUAT_NORM_TOL` of unit length).
+
+    Raises:
+        BadInputError: wrong or empty frame_id ('frame_id'), NaN/inf ('nonfinite'), a zero
+            or non-unit quaternion ('quaternion'). The message names `what`.
+    """
+    got = msg.header.frame_id
+    if got != frame_id:
+        raise BadInputError('frame_id', f'{what} frame_id {got!r} is not the world frame '
+                            f'{frame_id!r}; set tracker.world_frame or fix the tracker')
+    p = msg.pose.position
+    x, y, z, w = quat_xyzw(msg.pose)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (math.isfinite(norm) and math.isfinite(p.x + p.y + p.z)):
+        raise BadInputError('nonfinite', f'{what} pose has NaN or inf; fix the tracker output')
+    if abs(1.0 - norm) > QUAT_NORM_TOL:
+        raise BadInputError('quaternion', f'{what} orientation |q| = {norm:.6g} is not a unit '
+                            f'quaternion (tolerance {QUAT_NORM_TOL:g}); send normalised '
+                            '(x, y, z, w)')
+    return (p.x, p.y, p.z, x / norm, y / norm, z / norm, w / norm)
+
+
+def transform_stamped(pose: Sequence[float], stamp: Time, parent: str,
+                      child: str) -> TransformStamped:
+    """TransformStamped parent -> child from (px, py, pz, qx, qy, qz, qw)."""
+    msg = TransformStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = parent
+    msg.child_frame_id = child
+    t, r = msg.transform.translation, msg.transform.rotation
+    t.x, t.y, t.z = float(pose[0]), float(pose[1]), float(pose[2])
+    r.x, r.y, r.z, r.w = float(pose[3]), float(pose[4]), float(pose[5]), float(pose[6])
+    return msg
 
 
 def angles_from_joint_state(msg: JointState,
