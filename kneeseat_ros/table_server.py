@@ -88,8 +88,8 @@ from kneeseat_ros.conversions import (
     angles_from_joint_state, angles_from_pose_stamped, AttitudeDecoder, BadInputError,
     diagnostic_status, DROP_REASONS, JOINT_NAMES, mesh_marker, pose_stamped,
     rigid_from_pose_stamped, stamp_ns, transform_stamped)
-from kneeseat_ros.tracker import (compose, load_registration, Pairer, Registration, Rigid,
-                                  relative_rotation)
+from kneeseat_ros.tracker import (compose, load_registration, Pairer, Registration,
+                                  relative_rotation, Rigid)
 
 __all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'TF_QOS', 'STATUS_NAME', 'ServerParams', 'TableServer',
            'load_table', 'main', 'USAGE']
@@ -719,8 +719,8 @@ class TableServer(Node):
         counts = self._dropped_counts()
         dropped = sum(counts.values())
         # dropped within the sliding window: total now - total at the window's start
-        history, horizon = self._drop_history, now_ns - int(self.params.diagnostics_window_s
-                                                           * 1e9)
+        history = self._drop_history
+        horizon = now_ns - int(self.params.diagnostics_window_s * 1e9)
         history.append((now_ns, dropped))
         while len(history) > 1 and history[1][0] <= horizon:
             history.popleft()

@@ -126,11 +126,11 @@ class Probe:
         return stamp_from_ns(self._stamp)
 
     def wait_connected(self, bodies: tuple[str, ...] = BODIES) -> None:
+        topics = [f'{self.ns}/knee/{b}/pose' for b in bodies]
         spin_until(self.executor, lambda: (
             self.pose_pub.get_subscription_count() > 0
             and self.joint_pub.get_subscription_count() > 0
-            and all(self.node.count_publishers(f'{self.ns}/knee/{b}/pose') > 0
-                    for b in bodies)),
+            and all(self.node.count_publishers(t) > 0 for t in topics)),
             timeout_s=20.0, what='discovery of table_server')
 
     def ask(self, msg: Any, bodies: tuple[str, ...] = BODIES) -> dict[str, PoseStamped]:
