@@ -25,7 +25,7 @@ from machine import describe_machine
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'test'))   # conftest: synthetic tables, ros_env
 
-PLAIN = '''
+PLAIN = """
 import rclpy
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
@@ -40,7 +40,7 @@ try:
     rclpy.spin(node)
 except KeyboardInterrupt:
     pass
-'''
+"""
 
 
 def cpu_seconds(pid: int) -> float:

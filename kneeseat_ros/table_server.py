@@ -36,12 +36,15 @@ Both modes:
   the `table` parameter loads the new file at once (the set is refused, with the reason,
   if it cannot be served), so the parameter always names the table being served.
 
-QoS: inputs use `qos_profile_sensor_data` (best effort, volatile) with keep last 50 instead
-of 5 (5 ms at 1 kHz is shorter than a scheduling hiccup), which matches both reliable and
-best-effort publishers; outputs are reliable, keep last 100 (a reliable writer overwrites
-unacknowledged answers beyond its depth: 10 would be 10 ms at 1 kHz), and their
-policies can be overridden through the standard `qos_overrides.*` parameters. `/tf` uses
-tf2_ros's broadcaster QoS (reliable, volatile, keep last 100).
+QoS: inputs use `qos_profile_sensor_data` (best effort, volatile) with keep last 1000
+instead of 5 (5 ms at 1 kHz is shorter than a scheduling hiccup), which matches both
+reliable and best-effort publishers; outputs are reliable, keep last 1000 (a reliable
+writer overwrites unacknowledged answers beyond its depth: 100 is 50 ms at 2 kHz), and
+their policies can be overridden through the standard `qos_overrides.*` parameters. `/tf`
+uses tf2_ros's broadcaster QoS (reliable, volatile, keep last 100).
+
+Hot path: inputs are taken as CDR bytes and answers published as CDR bytes
+(kneeseat_ros.cdr); no rclpy message object is built per message.
 
 Parameters are read once at start (all but `table` are read-only); bad values stop the
 node with one line `table_server: error: ...` on stderr and exit code 2. Mesh paths in
@@ -54,6 +57,7 @@ from collections.abc import Callable, Iterator
 import contextlib
 from dataclasses import dataclass
 from datetime import datetime, timezone
+import gc
 import math
 import os
 from pathlib import Path
@@ -77,6 +81,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import (qos_profile_sensor_data, QoSDurabilityPolicy, QoSHistoryPolicy,
                        QoSProfile, QoSReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.serialization import deserialize_message
 from rclpy.signals import SignalHandlerGuardCondition
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
@@ -84,10 +89,13 @@ from visualization_msgs.msg import MarkerArray
 
 from kneeseat_core.errors import ConfigError, KneeseatError, OutOfRangeError, TableError
 from kneeseat_core.table import Lookup, PoseTable, read_table
+from kneeseat_ros.cdr import (CdrError, decode_joint_state, decode_pose_stamped,
+                              encode_joint_state, encode_pose_stamped, PoseStampedWriter,
+                              TfWriter)
 from kneeseat_ros.conversions import (
-    angles_from_joint_state, angles_from_pose_stamped, AttitudeDecoder, BadInputError,
-    diagnostic_status, DROP_REASONS, JOINT_NAMES, mesh_marker, pose_stamped,
-    rigid_from_pose_stamped, stamp_ns, transform_stamped)
+    angles_from_joints, angles_from_orientation, AttitudeDecoder, BadInputError,
+    diagnostic_status, DROP_REASONS, JOINT_NAMES, mesh_marker, quat_xyzw, rigid_from_fields,
+    stamp_from_ns, stamp_ns)
 from kneeseat_ros.tracker import (compose, load_registration, Pairer, Registration,
                                   relative_rotation, Rigid)
 
@@ -96,13 +104,14 @@ __all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'TF_QOS', 'STATUS_NAME', 'ServerParams', '
 
 RCLError = _rclpy.RCLError
 # Sensor-data QoS (best effort, volatile, keep last) as the demos use, with a deeper queue:
-# depth 5 is 5 ms at 1 kHz, shorter than one scheduler hiccup on a loaded 2-core machine.
-INPUT_QOS = QoSProfile(history=qos_profile_sensor_data.history, depth=50,
+# depth 5 is 5 ms at 1 kHz; 1000 is 0.5 s at 2 kHz, longer than the scheduler stalls seen
+# on a loaded 2-core machine (up to ~0.3 s), so a node that keeps up on average drops none.
+INPUT_QOS = QoSProfile(history=qos_profile_sensor_data.history, depth=1000,
                        reliability=qos_profile_sensor_data.reliability,
                        durability=qos_profile_sensor_data.durability)
 # Messages taken per wake-up of one input (see TableServer._drain).
 DRAIN_MAX = 100
-OUTPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+OUTPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1000,
                         reliability=QoSReliabilityPolicy.RELIABLE,
                         durability=QoSDurabilityPolicy.VOLATILE)
 TF_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
@@ -250,16 +259,23 @@ class _Served:
     body_frames: tuple[str, ...]
     meshes: tuple[str | None, ...]     # reference first, then the bodies
     bounds_deg: tuple[float, float, float, float]
+    writer: PoseStampedWriter          # answers in the reference frame, as CDR bytes
+    tf: TfWriter                       # reference -> bodies (and world -> reference)
 
     @classmethod
-    def load(cls, path: Path) -> _Served:
+    def load(cls, path: Path, world_frame: str | None = None) -> _Served:
         table = load_table(path)
         flexion, varus = np.degrees(table.flexion_rad), np.degrees(table.varus_rad)
         meta = table.metadata
         meshes = tuple(_mesh_path(e, path) for e in [meta['reference'], *meta['bodies']])
-        return cls(table, path, table.reference_frame, str(meta['reference']['name']),
+        frame = table.reference_frame
+        pairs = [(frame, child) for child in table.body_frames]
+        if world_frame is not None:
+            pairs.append((world_frame, frame))
+        return cls(table, path, frame, str(meta['reference']['name']),
                    AttitudeDecoder(table.axes), table.bodies, table.body_frames, meshes,
-                   (float(flexion[0]), float(flexion[-1]), float(varus[0]), float(varus[-1])))
+                   (float(flexion[0]), float(flexion[-1]), float(varus[0]), float(varus[-1])),
+                   PoseStampedWriter(frame), TfWriter(pairs))
 
 
 class TableServer(Node):
@@ -280,11 +296,14 @@ class TableServer(Node):
         self._log = self.get_logger()
         self._clock = self.get_clock()
         self.params = self._read_parameters()
-        self._served = _Served.load(self.params.table)
         self._registration: Registration | None = None
         if self.params.tracker_registration:
             self._registration = load_registration(
                 Path(self.params.tracker_registration).expanduser())
+        self._world = (self.params.tracker_world_frame if self._registration is not None
+                       else None)
+        self._world_writer = PoseStampedWriter(self.params.tracker_world_frame)
+        self._served = _Served.load(self.params.table, self._world)
         self._out_of_range = self.params.out_of_range
         self._joint_names = (self.params.flexion_joint, self.params.varus_joint)
         self._received = 0
@@ -298,7 +317,7 @@ class TableServer(Node):
         self._window_received = 0
         self._window_start_ns = self._clock.now().nanoseconds
         self._latencies_ns: list[int] = []
-        self._last: tuple[Lookup, Any] | None = None
+        self._last: tuple[Lookup, int, int] | None = None
         self._recorder: Any = None
         self._recorder_dir: Path | None = None
         self._recorder_error_logged = False
@@ -324,20 +343,21 @@ class TableServer(Node):
         self._inputs: list[tuple[Any, Callable[[Any], None], str]] = []
         if self._registration is None:
             self._inputs += [
-                (self.create_subscription(PoseStamped, POSE_TOPIC, self._on_pose, INPUT_QOS),
+                (self.create_subscription(PoseStamped, POSE_TOPIC, self._on_pose, INPUT_QOS,
+                                          raw=True),
                  self._handle_pose, 'geometry_msgs/msg/PoseStamped'),
                 (self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
-                                          INPUT_QOS),
+                                          INPUT_QOS, raw=True),
                  self._handle_joints, 'sensor_msgs/msg/JointState')]
         else:
             self._pairer = Pairer(int(round(self.params.tracker_pair_tolerance_s * 1e9)))
             for side, topic in enumerate((self.params.tracker_femur_topic,
                                           self.params.tracker_tibia_topic)):
-                def handle(msg: PoseStamped, side: int = side) -> None:
-                    self._handle_rigid(side, msg)
+                def handle(data: bytes, side: int = side) -> None:
+                    self._handle_rigid(side, data)
                 sub = self.create_subscription(PoseStamped, topic,
                                                lambda m, h=handle: self._on_input(m, h),
-                                               INPUT_QOS)
+                                               INPUT_QOS, raw=True)
                 self._inputs.append((sub, handle, 'geometry_msgs/msg/PoseStamped'))
         self._reload_srv = self.create_service(Trigger, '~/reload', self._on_reload)
         self.create_timer(self.params.diagnostics_period_s, self._publish_diagnostics)
@@ -354,8 +374,9 @@ class TableServer(Node):
             f'[{s.bounds_deg[2]:.1f}, {s.bounds_deg[3]:.1f}] deg, out_of_range='
             f'{self._out_of_range}; {mode}; in {[i[0].topic_name for i in self._inputs]} '
             f'(sensor data QoS: best effort, depth {INPUT_QOS.depth}); out '
-            f'{[p.topic_name for p in self._body_pubs + self._body_world_pubs]} (reliable, '
-            f'depth 100), tf {"on" if self._tf_pub is not None else "off"}; recording '
+            f'{[p.topic_name for p in self._body_pubs + self._body_world_pubs]} '
+            f'(reliable, depth {OUTPUT_QOS.depth}), tf '
+            f'{"on" if self._tf_pub is not None else "off"}; recording '
             f'{self._recorder_dir if self._recorder is not None else "off"}')
 
     # ------------------------------------------------------------------ setup
@@ -524,6 +545,10 @@ class TableServer(Node):
         guards = [sigint, stop]
         wait_set = _rclpy.WaitSet(len(subs), len(guards), len(timers), 0, len(services), 0,
                                   self.context.handle)
+        # everything alive now lives as long as the node: keep it out of the cyclic
+        # collector's full passes, whose pauses grow with the heap (tables, imports)
+        gc.collect()
+        gc.freeze()
         try:
             with contextlib.ExitStack() as held:
                 for entity in (*subs, *timers, *services, *guards):
@@ -537,8 +562,8 @@ class TableServer(Node):
                         wait_set.add_timer(timer.handle)
                     for srv in services:
                         wait_set.add_service(srv.handle)
-                    for gc in guards:
-                        wait_set.add_guard_condition(gc.handle)
+                    for guard in guards:
+                        wait_set.add_guard_condition(guard.handle)
                     wait_set.wait(-1)
                     ready = wait_set.get_ready_entities('subscription')
                     for sub, handle in zip(subs, handlers):
@@ -553,54 +578,98 @@ class TableServer(Node):
             sigint.destroy()
             stop.destroy()
 
-    def _stamped(self, stamp: Any) -> int:
-        ns = stamp_ns(stamp)
+    def _stamped(self, sec: int, nanosec: int) -> int:
+        ns = sec * 1_000_000_000 + nanosec
         if ns == 0:
             self._unstamped += 1
         return ns
 
-    def _handle_pose(self, msg: PoseStamped) -> None:
-        self._received += 1
-        ns = self._stamped(msg.header.stamp)
-        if self._recorder is not None:
-            self._record(self._inputs[0][0].topic_name, msg, ns)
+    def _pose_fields(self, data: bytes) -> tuple[int, int, str, tuple[float, ...]] | None:
+        """Stamp, frame and pose of a PoseStamped's CDR (rclpy for other encodings)."""
         try:
-            flexion, varus = angles_from_pose_stamped(msg, self._served.decoder,
-                                                      self._served.frame)
+            return decode_pose_stamped(data)
+        except CdrError as err:
+            try:
+                msg = deserialize_message(data, PoseStamped)
+            except Exception:             # the rmw's own error for undecodable bytes
+                self._received += 1
+                self._drop('malformed', err)
+                return None
+            p = msg.pose.position
+            return (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id,
+                    (p.x, p.y, p.z, *quat_xyzw(msg.pose)))
+
+    def _handle_pose(self, data: bytes) -> None:
+        fields = self._pose_fields(data)
+        if fields is None:
+            return
+        sec, nanosec, frame, pose = fields
+        self._received += 1
+        ns = self._stamped(sec, nanosec)
+        if self._recorder is not None:
+            self._recorder.write_raw(self._inputs[0][0].topic_name,
+                                     encode_pose_stamped(sec, nanosec, frame, pose),
+                                     self._clock.now().nanoseconds, ns)
+        try:
+            flexion, varus = angles_from_orientation(frame, pose[3:], self._served.decoder,
+                                                     self._served.frame)
         except BadInputError as err:
             self._drop(err.reason, err)
             return
-        self._answer(flexion, varus, msg.header.stamp, ns)
+        self._answer(flexion, varus, sec, nanosec, ns)
 
-    def _handle_joints(self, msg: JointState) -> None:
-        self._received += 1
-        ns = self._stamped(msg.header.stamp)
-        if self._recorder is not None:
-            self._record(self._inputs[1][0].topic_name, msg, ns)
+    def _handle_joints(self, data: bytes) -> None:
         try:
-            flexion, varus = angles_from_joint_state(msg, self._joint_names)
+            sec, nanosec, frame, names, position, velocity, effort = decode_joint_state(data)
+        except CdrError as err:
+            try:
+                msg = deserialize_message(data, JointState)
+            except Exception:             # the rmw's own error for undecodable bytes
+                self._received += 1
+                self._drop('malformed', err)
+                return
+            sec, nanosec, frame = (msg.header.stamp.sec, msg.header.stamp.nanosec,
+                                   msg.header.frame_id)
+            names, position = list(msg.name), tuple(msg.position)
+            velocity, effort = tuple(msg.velocity), tuple(msg.effort)
+        self._received += 1
+        ns = self._stamped(sec, nanosec)
+        if self._recorder is not None:
+            self._recorder.write_raw(
+                self._inputs[1][0].topic_name,
+                encode_joint_state(sec, nanosec, frame, names, position, velocity, effort),
+                self._clock.now().nanoseconds, ns)
+        try:
+            flexion, varus = angles_from_joints(names, position, len(velocity), len(effort),
+                                                self._joint_names)
         except BadInputError as err:
             self._drop(err.reason, err)
             return
-        self._answer(flexion, varus, msg.header.stamp, ns)
+        self._answer(flexion, varus, sec, nanosec, ns)
 
-    def _handle_rigid(self, side: int, msg: PoseStamped) -> None:
+    def _handle_rigid(self, side: int, data: bytes) -> None:
         """Tracker mode: one rigid body's world pose; answers when it completes a pair."""
+        fields = self._pose_fields(data)
+        if fields is None:
+            return
+        sec, nanosec, frame, pose = fields
         self._received += 1
-        ns = self._stamped(msg.header.stamp)
+        ns = self._stamped(sec, nanosec)
         if self._recorder is not None:
-            self._record(self._inputs[side][0].topic_name, msg, ns)
+            self._recorder.write_raw(self._inputs[side][0].topic_name,
+                                     encode_pose_stamped(sec, nanosec, frame, pose),
+                                     self._clock.now().nanoseconds, ns)
         reg = self._registration
         assert reg is not None and self._pairer is not None
         try:
-            cluster = rigid_from_pose_stamped(msg, self.params.tracker_world_frame,
-                                              ('femur', 'tibia')[side] + ' rigid body')
+            cluster = rigid_from_fields(frame, pose, self.params.tracker_world_frame,
+                                        ('femur', 'tibia')[side] + ' rigid body')
         except BadInputError as err:
             self._drop(err.reason, err)
             return
         bone = compose(cluster, reg.femur if side == 0 else reg.tibia)
         before = self._pairer.unpaired, self._pairer.stale
-        pair = self._pairer.add(side, ns, (bone, msg.header.stamp))
+        pair = self._pairer.add(side, ns, (bone, sec, nanosec))
         if self._pairer.unpaired != before[0] or self._pairer.stale != before[1]:
             self._log.warning(f'tracker inputs dropped: {self._pairer.unpaired} unpaired, '
                               f'{self._pairer.stale} stale so far (pair tolerance '
@@ -608,13 +677,14 @@ class TableServer(Node):
                               throttle_duration_sec=WARN_THROTTLE_S)
         if pair is None:
             return
-        (femur, stamp), (tibia, _), femur_ns = pair
+        (femur, f_sec, f_nanosec), (tibia, _, _), femur_ns = pair
         x, y, z, w = relative_rotation(femur, tibia)
         flexion, varus = self._served.decoder.angles(x, y, z, w)
-        self._answer(flexion, varus, stamp, femur_ns, femur)
+        self._answer(flexion, varus, f_sec, f_nanosec, femur_ns, femur)
 
-    def _answer(self, flexion: float, varus: float, stamp: Any, ns: int,
+    def _answer(self, flexion: float, varus: float, sec: int, nanosec: int, ns: int,
                 femur_world: Rigid | None = None) -> None:
+        """Look the table up and publish the answer as CDR bytes (see kneeseat_ros.cdr)."""
         served = self._served
         try:
             lookup = served.table.interpolate(flexion, varus, self._out_of_range)
@@ -624,48 +694,44 @@ class TableServer(Node):
         except KneeseatError as err:       # non-finite angles are caught before; belt and braces
             self._drop('nonfinite', err)
             return
-        frame = served.frame
-        position, orientation = lookup.position_m.tolist(), lookup.orientation_xyzw.tolist()
+        positions, orientations = lookup.position_m.tolist(), lookup.orientation_xyzw.tolist()
+        poses = [(*p, *q) for p, q in zip(positions, orientations)]
         recorder = self._recorder
-        for i, pub in enumerate(self._body_pubs):
-            out = pose_stamped(position[i], orientation[i], stamp, frame)
-            pub.publish(out)
+        now_ns = self._clock.now().nanoseconds if recorder is not None else 0
+        encode = served.writer.encode
+        for pub, pose in zip(self._body_pubs, poses):
+            data = encode(sec, nanosec, pose)
+            pub.publish(data)
             if recorder is not None:
-                self._record(pub.topic_name, out, ns)
+                recorder.write_raw(pub.topic_name, data, now_ns, ns)
         self._published += len(self._body_pubs)
         transforms = []
         if femur_world is not None:
-            world = self.params.tracker_world_frame
-            pub = self._reference_world_pub
-            assert pub is not None
-            out = pose_stamped(femur_world[:3], femur_world[3:], stamp, world)
-            pub.publish(out)
-            if recorder is not None:
-                self._record(pub.topic_name, out, ns)
-            for i, pub in enumerate(self._body_world_pubs):
-                body = compose(femur_world, (*position[i], *orientation[i]))
-                out = pose_stamped(body[:3], body[3:], stamp, world)
-                pub.publish(out)
+            world, encode = self.params.tracker_world_frame, self._world_writer.encode
+            outs = [(self._reference_world_pub, femur_world)]
+            outs += [(pub, compose(femur_world, pose))
+                     for pub, pose in zip(self._body_world_pubs, poses)]
+            for pub, pose in outs:
+                data = encode(sec, nanosec, pose)
+                pub.publish(data)
                 if recorder is not None:
-                    self._record(pub.topic_name, out, ns)
-            self._published += 1 + len(self._body_world_pubs)
-            if self._tf_pub is not None:
-                transforms.append(transform_stamped(femur_world, stamp, world, frame))
+                    recorder.write_raw(pub.topic_name, data, now_ns, ns)
+            self._published += len(outs)
+            transforms.append((world, served.frame, femur_world))
         if self._tf_pub is not None:
-            for i, child in enumerate(served.body_frames):
-                transforms.append(transform_stamped((*position[i], *orientation[i]), stamp,
-                                                    frame, child))
-            tf = self._tf_type(transforms=transforms)
-            self._tf_pub.publish(tf)
+            transforms += [(served.frame, child, pose)
+                           for child, pose in zip(served.body_frames, poses)]
+            data = served.tf.encode(sec, nanosec, transforms)
+            self._tf_pub.publish(data)
             if recorder is not None:
-                self._record(self._tf_pub.topic_name, tf, ns)
+                recorder.write_raw(self._tf_pub.topic_name, data, now_ns, ns)
         self._answered += 1
         self._window_received += 1
         if lookup.clamped:
             self._clamped += 1
         if lookup.nonconverged.any():
             self._nonconverged += 1
-        self._last = (lookup, stamp)
+        self._last = (lookup, sec, nanosec)
         if ns != 0:
             self._latencies_ns.append(self._clock.now().nanoseconds - ns)
 
@@ -675,12 +741,14 @@ class TableServer(Node):
                           throttle_duration_sec=WARN_THROTTLE_S)
 
     def _record(self, topic: str, msg: Any, publish_time_ns: int) -> None:
+        """Record a message object (the slow callbacks: markers, diagnostics)."""
         self._recorder.write(topic, msg, self._clock.now().nanoseconds, publish_time_ns)
 
     # ------------------------------------------------------- slow callbacks
     def _publish_markers(self) -> None:
         served, last = self._served, self._last
-        stamp = last[1] if last is not None else self._clock.now().to_msg()
+        stamp = (stamp_from_ns(last[1] * 1_000_000_000 + last[2]) if last is not None
+                 else self._clock.now().to_msg())
         markers = MarkerArray()
         if served.meshes[0] is not None:
             markers.markers.append(mesh_marker(0, served.meshes[0], served.frame, stamp,
@@ -784,7 +852,7 @@ class TableServer(Node):
     def _load(self, path: Path) -> str:
         """Serve the table at `path`; the old one stays on failure (KneeseatError)."""
         old = self._served
-        served = _Served.load(path)
+        served = _Served.load(path, self._world)
         self._served = served
         self._make_body_publishers()
         if self._marker_pub is not None:
