@@ -64,6 +64,8 @@ from pathlib import Path
 import re
 import sys
 import tempfile
+import threading
+import time
 from typing import Any, Literal
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -71,8 +73,10 @@ from geometry_msgs.msg import PoseStamped
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 import rclpy
+from rclpy.callback_groups import CallbackGroup
 from rclpy.exceptions import InvalidParameterTypeException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import (ExternalShutdownException, ShutdownException,
+                             SingleThreadedExecutor)
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -117,6 +121,9 @@ OUTPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1000,
 TF_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                     reliability=QoSReliabilityPolicy.RELIABLE,
                     durability=QoSDurabilityPolicy.VOLATILE)
+# serve(): the input wait also wakes this often to look at the context (a shutdown whose
+# guard-condition trigger lands before the context is down would otherwise be missed).
+SHUTDOWN_CHECK_NS = 1_000_000_000
 STATUS_NAME = 'kneeseat table_server'
 POSE_TOPIC = 'knee/pose'
 JOINT_TOPIC = 'knee/joint_states'
@@ -278,6 +285,41 @@ class _Served:
                    PoseStampedWriter(frame), TfWriter(pairs))
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class _Route:
+    """The served table with its output publishers, swapped as one by a reload."""
+
+    served: _Served
+    body_pubs: tuple[Publisher, ...]
+    body_world_pubs: tuple[Publisher, ...]     # tracker mode only
+    reference_world_pub: Publisher | None      # tracker mode only
+
+
+class _InputsGroup(CallbackGroup):
+    """The inputs' callback group: kept out of rclpy's executor while `serve()` runs.
+
+    serve() waits on the inputs itself in the main thread and leaves every other entity
+    (timers, services, parameter services) to an executor in a second thread; a node added
+    to another executor (tests, composition) gets its inputs from it. The inputs' QoS event
+    handlers stay out too: with rmw_fastrtps a subscription's event wakes the wait on every
+    message of that subscription (the executor thread then spun at 60% of a core at 2 kHz);
+    the inputs accept every publisher QoS by default, so these events practically never fire.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.direct = False
+
+    def can_execute(self, entity: Any) -> bool:
+        return not self.direct
+
+    def beginning_execution(self, entity: Any) -> bool:
+        return self.can_execute(entity)
+
+    def ending_execution(self, entity: Any) -> None:
+        pass
+
+
 class TableServer(Node):
     """Serves a pose table: tracked attitude in, settled pose of every moving body out."""
 
@@ -295,6 +337,11 @@ class TableServer(Node):
         super().__init__('table_server', **kwargs)
         self._log = self.get_logger()
         self._clock = self.get_clock()
+        # the node clock in ns for the hot path: with use_sim_time off (read at start) ROS
+        # time is the system clock, and time.time_ns is ~10x cheaper than Clock.now()
+        self._now_ns: Callable[[], int] = (
+            (lambda: self._clock.now().nanoseconds)
+            if self.get_parameter('use_sim_time').value else time.time_ns)
         self.params = self._read_parameters()
         self._registration: Registration | None = None
         if self.params.tracker_registration:
@@ -303,7 +350,7 @@ class TableServer(Node):
         self._world = (self.params.tracker_world_frame if self._registration is not None
                        else None)
         self._world_writer = PoseStampedWriter(self.params.tracker_world_frame)
-        self._served = _Served.load(self.params.table, self._world)
+        served = _Served.load(self.params.table, self._world)
         self._out_of_range = self.params.out_of_range
         self._joint_names = (self.params.flexion_joint, self.params.varus_joint)
         self._received = 0
@@ -325,10 +372,8 @@ class TableServer(Node):
 
         self._pubs: dict[str, Publisher] = {}
         self._world_pubs: dict[str, Publisher] = {}
-        self._body_pubs: list[Publisher] = []
-        self._body_world_pubs: list[Publisher] = []
-        self._reference_world_pub: Publisher | None = None
-        self._make_body_publishers()
+        self._route = self._make_route(served)
+        self._inputs_group = _InputsGroup()
         self._diag_pub = self.create_publisher(
             DiagnosticArray, DIAGNOSTICS_TOPIC, OUTPUT_QOS,
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
@@ -344,10 +389,11 @@ class TableServer(Node):
         if self._registration is None:
             self._inputs += [
                 (self.create_subscription(PoseStamped, POSE_TOPIC, self._on_pose, INPUT_QOS,
-                                          raw=True),
+                                          raw=True, callback_group=self._inputs_group),
                  self._handle_pose, 'geometry_msgs/msg/PoseStamped'),
                 (self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
-                                          INPUT_QOS, raw=True),
+                                          INPUT_QOS, raw=True,
+                                          callback_group=self._inputs_group),
                  self._handle_joints, 'sensor_msgs/msg/JointState')]
         else:
             self._pairer = Pairer(int(round(self.params.tracker_pair_tolerance_s * 1e9)))
@@ -357,7 +403,8 @@ class TableServer(Node):
                     self._handle_rigid(side, data)
                 sub = self.create_subscription(PoseStamped, topic,
                                                lambda m, h=handle: self._on_input(m, h),
-                                               INPUT_QOS, raw=True)
+                                               INPUT_QOS, raw=True,
+                                               callback_group=self._inputs_group)
                 self._inputs.append((sub, handle, 'geometry_msgs/msg/PoseStamped'))
         self._reload_srv = self.create_service(Trigger, '~/reload', self._on_reload)
         self.create_timer(self.params.diagnostics_period_s, self._publish_diagnostics)
@@ -374,7 +421,7 @@ class TableServer(Node):
             f'[{s.bounds_deg[2]:.1f}, {s.bounds_deg[3]:.1f}] deg, out_of_range='
             f'{self._out_of_range}; {mode}; in {[i[0].topic_name for i in self._inputs]} '
             f'(sensor data QoS: best effort, depth {INPUT_QOS.depth}); out '
-            f'{[p.topic_name for p in self._body_pubs + self._body_world_pubs]} '
+            f'{[p.topic_name for p in self._route.body_pubs + self._route.body_world_pubs]} '
             f'(reliable, depth {OUTPUT_QOS.depth}), tf '
             f'{"on" if self._tf_pub is not None else "off"}; recording '
             f'{self._recorder_dir if self._recorder is not None else "off"}')
@@ -416,19 +463,24 @@ class TableServer(Node):
         values['table'] = Path(values['table']).expanduser().absolute()
         return ServerParams(**{k.replace('.', '_'): v for k, v in values.items()})
 
-    def _make_body_publishers(self) -> None:
-        served = self._served
-        tracker = self._registration is not None
+    @property
+    def _served(self) -> _Served:
+        return self._route.served
+
+    def _make_route(self, served: _Served) -> _Route:
+        """Publishers for `served` (created once per topic), bundled with it."""
         for body in served.bodies:
             if body not in self._pubs:
                 self._pubs[body] = self._pose_publisher(f'knee/{body}/pose')
-        if tracker:
+        world: tuple[Publisher, ...] = ()
+        reference = None
+        if self._registration is not None:
             for body in (served.reference, *served.bodies):
                 if body not in self._world_pubs:
                     self._world_pubs[body] = self._pose_publisher(f'knee/{body}/world_pose')
-            self._reference_world_pub = self._world_pubs[served.reference]
-            self._body_world_pubs = [self._world_pubs[b] for b in served.bodies]
-        self._body_pubs = [self._pubs[b] for b in served.bodies]
+            reference = self._world_pubs[served.reference]
+            world = tuple(self._world_pubs[b] for b in served.bodies)
+        return _Route(served, tuple(self._pubs[b] for b in served.bodies), world, reference)
 
     def _pose_publisher(self, topic: str) -> Publisher:
         pub = self.create_publisher(
@@ -525,58 +577,77 @@ class TableServer(Node):
             handle(taken[0])
 
     def serve(self) -> None:
-        """Spin until shutdown: one wait set over every entity, the inputs handled directly.
+        """Spin until shutdown: the inputs in this thread, everything else in a second one.
 
-        The wait blocks until an input, a timer, a service request or a shutdown is ready
-        (no polling: an idle node sleeps). Ready inputs are drained here; anything else is
-        handed to rclpy's executor (`spin_once(0)`), whose per-call cost (its wait set is
-        rebuilt over every entity, about 0.15 ms) is then paid for timers and services only,
-        not per message. Uses rclpy's WaitSet and take_message as rclpy.executors does
-        (Jazzy).
+        This thread waits on a wait set holding only the inputs and two guard conditions
+        (SIGINT/SIGTERM, shutdown) and drains every ready input: per message it pays one
+        rcl_wait over 4 entities. rcl_wait's cost grows with the entities in the set (each
+        is attached to and detached from the wait, about 5 us each with rmw_fastrtps), and a
+        node's timers, parameter services and ~/reload are 12 more; rclpy's executor also
+        rebuilds its wait set in Python on every call. So timers, services and parameters
+        run in rclpy's executor in a second thread, which sleeps until one of them is ready
+        (the inputs' callback group keeps them out of it). An idle node sleeps in both.
+        Uses rclpy's WaitSet and take_message as rclpy.executors does (Jazzy).
         """
         executor = SingleThreadedExecutor(context=self.context)
+        self._inputs_group.direct = True
         executor.add_node(self)
+        failed: list[BaseException] = []
+
+        def housekeeping() -> None:
+            try:
+                executor.spin()
+            except (ExternalShutdownException, ShutdownException):
+                pass
+            except RCLError:
+                if self.context.ok():
+                    raise
+            except BaseException as err:        # re-raised in the main thread
+                failed.append(err)
+                self.context.try_shutdown()
+            finally:                            # wake the main thread: it stops too
+                stop.trigger()
+
         sigint = SignalHandlerGuardCondition(self.context)
         stop = GuardCondition(None, None, context=self.context)
         self.context.on_shutdown(stop.trigger)
         subs = [sub for sub, _, _ in self._inputs]
         handlers = [handle for _, handle, _ in self._inputs]
-        timers, services = list(self.timers), list(self.services)
         guards = [sigint, stop]
-        wait_set = _rclpy.WaitSet(len(subs), len(guards), len(timers), 0, len(services), 0,
-                                  self.context.handle)
+        wait_set = _rclpy.WaitSet(len(subs), len(guards), 0, 0, 0, 0, self.context.handle)
+        thread = threading.Thread(target=housekeeping, name='table_server housekeeping',
+                                  daemon=True)
         # everything alive now lives as long as the node: keep it out of the cyclic
         # collector's full passes, whose pauses grow with the heap (tables, imports)
         gc.collect()
         gc.freeze()
+        thread.start()
         try:
             with contextlib.ExitStack() as held:
-                for entity in (*subs, *timers, *services, *guards):
+                for entity in (*subs, *guards):
                     held.enter_context(entity.handle)
                 held.enter_context(self.context.handle)
+                pairs = [(sub, sub.handle, handle) for sub, handle in zip(subs, handlers)]
                 while self.context.ok():
                     wait_set.clear_entities()
-                    for sub in subs:
-                        wait_set.add_subscription(sub.handle)
-                    for timer in timers:
-                        wait_set.add_timer(timer.handle)
-                    for srv in services:
-                        wait_set.add_service(srv.handle)
+                    for _, sub_handle, _ in pairs:
+                        wait_set.add_subscription(sub_handle)
                     for guard in guards:
                         wait_set.add_guard_condition(guard.handle)
-                    wait_set.wait(-1)
+                    wait_set.wait(SHUTDOWN_CHECK_NS)
                     ready = wait_set.get_ready_entities('subscription')
-                    for sub, handle in zip(subs, handlers):
-                        if sub.handle.pointer in ready:
+                    for sub, sub_handle, handle in pairs:
+                        if sub_handle.pointer in ready:
                             self._drain(sub, handle)
-                    if (wait_set.get_ready_entities('timer')
-                            or wait_set.get_ready_entities('service')) and self.context.ok():
-                        executor.spin_once(timeout_sec=0.0)
         finally:
+            executor.shutdown(timeout_sec=5.0)
+            thread.join(timeout=10.0)
+            self._inputs_group.direct = False
             executor.remove_node(self)
-            executor.shutdown()
             sigint.destroy()
             stop.destroy()
+        if failed:
+            raise failed[0]
 
     def _stamped(self, sec: int, nanosec: int) -> int:
         ns = sec * 1_000_000_000 + nanosec
@@ -609,7 +680,7 @@ class TableServer(Node):
         if self._recorder is not None:
             self._recorder.write_raw(self._inputs[0][0].topic_name,
                                      encode_pose_stamped(sec, nanosec, frame, pose),
-                                     self._clock.now().nanoseconds, ns)
+                                     self._now_ns(), ns)
         try:
             flexion, varus = angles_from_orientation(frame, pose[3:], self._served.decoder,
                                                      self._served.frame)
@@ -638,7 +709,7 @@ class TableServer(Node):
             self._recorder.write_raw(
                 self._inputs[1][0].topic_name,
                 encode_joint_state(sec, nanosec, frame, names, position, velocity, effort),
-                self._clock.now().nanoseconds, ns)
+                self._now_ns(), ns)
         try:
             flexion, varus = angles_from_joints(names, position, len(velocity), len(effort),
                                                 self._joint_names)
@@ -658,7 +729,7 @@ class TableServer(Node):
         if self._recorder is not None:
             self._recorder.write_raw(self._inputs[side][0].topic_name,
                                      encode_pose_stamped(sec, nanosec, frame, pose),
-                                     self._clock.now().nanoseconds, ns)
+                                     self._now_ns(), ns)
         reg = self._registration
         assert reg is not None and self._pairer is not None
         try:
@@ -685,7 +756,8 @@ class TableServer(Node):
     def _answer(self, flexion: float, varus: float, sec: int, nanosec: int, ns: int,
                 femur_world: Rigid | None = None) -> None:
         """Look the table up and publish the answer as CDR bytes (see kneeseat_ros.cdr)."""
-        served = self._served
+        route = self._route
+        served = route.served
         try:
             lookup = served.table.interpolate(flexion, varus, self._out_of_range)
         except OutOfRangeError as err:
@@ -697,20 +769,20 @@ class TableServer(Node):
         positions, orientations = lookup.position_m.tolist(), lookup.orientation_xyzw.tolist()
         poses = [(*p, *q) for p, q in zip(positions, orientations)]
         recorder = self._recorder
-        now_ns = self._clock.now().nanoseconds if recorder is not None else 0
+        now_ns = self._now_ns() if recorder is not None else 0
         encode = served.writer.encode
-        for pub, pose in zip(self._body_pubs, poses):
+        for pub, pose in zip(route.body_pubs, poses):
             data = encode(sec, nanosec, pose)
             pub.publish(data)
             if recorder is not None:
                 recorder.write_raw(pub.topic_name, data, now_ns, ns)
-        self._published += len(self._body_pubs)
+        self._published += len(route.body_pubs)
         transforms = []
         if femur_world is not None:
             world, encode = self.params.tracker_world_frame, self._world_writer.encode
-            outs = [(self._reference_world_pub, femur_world)]
+            outs = [(route.reference_world_pub, femur_world)]
             outs += [(pub, compose(femur_world, pose))
-                     for pub, pose in zip(self._body_world_pubs, poses)]
+                     for pub, pose in zip(route.body_world_pubs, poses)]
             for pub, pose in outs:
                 data = encode(sec, nanosec, pose)
                 pub.publish(data)
@@ -733,7 +805,7 @@ class TableServer(Node):
             self._nonconverged += 1
         self._last = (lookup, sec, nanosec)
         if ns != 0:
-            self._latencies_ns.append(self._clock.now().nanoseconds - ns)
+            self._latencies_ns.append(self._now_ns() - ns)
 
     def _drop(self, reason: str, err: Exception) -> None:
         self._dropped[reason] += 1
@@ -853,8 +925,7 @@ class TableServer(Node):
         """Serve the table at `path`; the old one stays on failure (KneeseatError)."""
         old = self._served
         served = _Served.load(path, self._world)
-        self._served = served
-        self._make_body_publishers()
+        self._route = self._make_route(served)
         if self._marker_pub is not None:
             self._check_meshes()
         self._last = None
