@@ -14,6 +14,7 @@ attitude decode are timed in-process as well.
     python benchmarks/bench_server.py --rate-s 5 --flat-s 2
     python benchmarks/bench_server.py --rate-hz 2000 --rate-s 30 --flat-s 0
     python benchmarks/bench_server.py --rate-s 60 --flat-s 0 --competitor
+    python benchmarks/bench_server.py --rate-hz 2000 --rate-s 30 --flat-s 0 --fifo 10
 
 Targets (issue 4): 1 kHz with zero drops and p99 <= 2 ms end-to-end; one interpolation
 <= 20 us. Issue 14: 2 kHz, 100% answered, p99 <= 1 ms; 1 kHz beside a CPU-bound process,
@@ -144,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--domain-id', type=int, default=0, help='0 = derive from pid')
     parser.add_argument('--competitor', action='store_true',
                         help='run a CPU-bound process (a Python busy loop) meanwhile')
+    parser.add_argument('--fifo', type=int, default=0, metavar='PRIO',
+                        help='run the tracker, the node and the receiver with SCHED_FIFO '
+                             'priority PRIO (the competitor stays SCHED_OTHER); 0 = off')
     parser.add_argument('--tracker', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     from conftest import next_domain_id, ros_env, synthetic_table
@@ -151,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.update(ros_env(domain_id))
     if args.tracker:
         return tracker(domain_id, args.rate_hz, args.rate_s, args.flat_s)
+    if args.fifo:       # inherited by the node and the tracker started below
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -163,7 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     from kneeseat_ros.conversions import pose_stamped_for_attitude, stamp_from_ns
 
     print(describe_machine())
-    print(f'ROS_DOMAIN_ID {domain_id}, RMW {os.environ.get("RMW_IMPLEMENTATION", "default")}')
+    print(f'ROS_DOMAIN_ID {domain_id}, RMW {os.environ.get("RMW_IMPLEMENTATION", "default")}; '
+          + (f'tracker, node and receiver at SCHED_FIFO {args.fifo}' if args.fifo
+             else 'default scheduling (SCHED_OTHER)'))
     tmp = Path(tempfile.mkdtemp(prefix='bench_server_'))
     table_path = tmp / 'knee.npz'
     write_table(table_path, synthetic_table(flexion_deg=(-90.0, 0.0, 91),
@@ -256,7 +264,8 @@ def main(argv: list[str] | None = None) -> int:
 
     hog = None
     if args.competitor:
-        hog = subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+        hog = subprocess.Popen([sys.executable, '-c', 'while True: pass'], preexec_fn=lambda:
+                               os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0)))
         print(f'competitor: a CPU-bound busy loop, pid {hog.pid}')
     trk = subprocess.Popen([sys.executable, __file__, '--tracker', '--domain-id',
                             str(domain_id), '--rate-hz', str(args.rate_hz), '--rate-s',
