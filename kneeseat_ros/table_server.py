@@ -582,11 +582,12 @@ class TableServer(Node):
         This thread waits on a wait set holding only the inputs and two guard conditions
         (SIGINT/SIGTERM, shutdown) and drains every ready input: per message it pays one
         rcl_wait over 4 entities. rcl_wait's cost grows with the entities in the set (each
-        is attached to and detached from the wait, about 5 us each with rmw_fastrtps), and a
-        node's timers, parameter services and ~/reload are 12 more; rclpy's executor also
-        rebuilds its wait set in Python on every call. So timers, services and parameters
-        run in rclpy's executor in a second thread, which sleeps until one of them is ready
-        (the inputs' callback group keeps them out of it). An idle node sleeps in both.
+        is attached to and detached from the wait), and a node's timers, parameter
+        services and ~/reload are 12 more; rclpy's executor also rebuilds its wait set in
+        Python on every call. So timers, services and parameters run in rclpy's executor in
+        a second thread, which sleeps until one of them is ready (the inputs' callback
+        group keeps them out of it). An idle node sleeps in both. The wait also times out
+        every `SHUTDOWN_CHECK_NS` to look at the context, as a safety net for shutdown.
         Uses rclpy's WaitSet and take_message as rclpy.executors does (Jazzy).
         """
         executor = SingleThreadedExecutor(context=self.context)
