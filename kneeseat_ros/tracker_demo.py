@@ -248,7 +248,7 @@ def _run(args: argparse.Namespace) -> int:
         rclpy.try_shutdown(context=context)
         server.send_signal(signal.SIGINT)
         rc = server.wait(timeout=15)
-    png = plot_world(worlds, names, out / 'tracker_world.png')
+    png = plot_world(worlds, names, out / 'tracker_world.png', _mesh_points(table, table_path))
     print(f'tracker_demo: {args.samples} pairs at {args.rate_hz:g} Hz through table_server '
           f'(exit {rc}); every answer arrived; largest error against the composition of '
           f'the inputs, the registration and the table: position {pos_err:.2e} m, '
@@ -256,8 +256,41 @@ def _run(args: argparse.Namespace) -> int:
     return 0 if max(pos_err, rot_err) <= 1e-9 and rc == 0 else 1
 
 
-def plot_world(worlds: Floats, names: Sequence[str], out: Path) -> Path:
-    """Top and side views of the bones' frames (origins and axes) along the path."""
+def _mesh_points(table: PoseTable, table_path: Path,
+                 count: int = 400) -> list[Floats] | None:
+    """Up to `count` vertices (m) of each body's mesh (reference first), or None.
+
+    The mesh paths come from the table's metadata (relative ones from the table's folder);
+    a table whose meshes are not on this machine is drawn with frames only.
+    """
+    from kneeseat_core.errors import MeshError
+    from kneeseat_core.meshes import load_mesh
+    meta = table.metadata
+    units = meta.get('config', {}).get('units', 'm')
+    points = []
+    for entry in (meta['reference'], *meta['bodies']):
+        name = entry.get('display_mesh') or entry.get('mesh')
+        if not name:
+            return None
+        path = Path(str(name))
+        path = path if path.is_absolute() else table_path.parent / path
+        try:
+            vertices = np.asarray(load_mesh(path, units).vertices)
+        except MeshError:
+            return None
+        step = max(len(vertices) // count, 1)
+        points.append(vertices[::step])
+    return points
+
+
+def plot_world(worlds: Floats, names: Sequence[str], out: Path,
+               meshes: list[Floats] | None = None) -> Path:
+    """Top and side views of the bones along the path: frames, and mesh points if given.
+
+    Args:
+        worlds: (bodies, samples, 4, 4) world poses, reference body first.
+        meshes: per body, (n, 3) mesh vertices in its own frame (m), drawn at a few poses.
+    """
     fig = Figure(figsize=(11, 5.5))
     FigureCanvasAgg(fig)
     colours = ('#444444', '#c0392b', '#2471a3', '#229954')
@@ -277,13 +310,20 @@ def plot_world(worlds: Floats, names: Sequence[str], out: Path) -> Path:
             for i in range(1, len(names)):
                 seg = worlds[[0, i], k, :3, 3]
                 ax.plot(seg[:, a], seg[:, b], color='#999999', lw=0.6)
+        if meshes is not None:             # the bones themselves at a few instants
+            for k in range(0, n, max(n // 5, 1)):
+                for i, pts in enumerate(meshes):
+                    world = pts @ worlds[i, k, :3, :3].T + worlds[i, k, :3, 3]
+                    ax.scatter(world[:, a], world[:, b], s=0.6, color=colours[i % 4],
+                               alpha=0.5, linewidths=0)
         ax.set_title(f'world, {view} (m)')
         ax.set_aspect('equal', adjustable='datalim')
         ax.grid(alpha=0.3)
         if col == 0:
             ax.legend(loc='best', fontsize=8)
     fig.suptitle('table_server tracker mode: bones in the world frame while the leg moves '
-                 '(axes x red, y green, z blue; 5 cm)', fontsize=10)
+                 '(frames: x red, y green, z blue, 5 cm; dots: mesh vertices at 5 instants)',
+                 fontsize=10)
     fig.tight_layout()
     return write_png(fig, out)
 
