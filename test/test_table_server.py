@@ -63,9 +63,15 @@ class ServerProcess:
                 env=env if exact_env and env is not None else ros_env(domain_id, env))
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
+        """Send `sig` and wait; a node that does not exit is killed (and the test fails)."""
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
-        return self.proc.wait(timeout=timeout_s)
+        try:
+            return self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+            raise
 
     def stderr(self) -> str:
         return self.err.read_text()
