@@ -74,7 +74,7 @@ import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 import rclpy
 from rclpy.callback_groups import CallbackGroup
-from rclpy.exceptions import InvalidParameterTypeException
+from rclpy.exceptions import InvalidHandle, InvalidParameterTypeException
 from rclpy.executors import (ExternalShutdownException, ShutdownException,
                              SingleThreadedExecutor)
 from rclpy.guard_condition import GuardCondition
@@ -86,7 +86,6 @@ from rclpy.qos import (qos_profile_sensor_data, QoSDurabilityPolicy, QoSHistoryP
                        QoSProfile, QoSReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
-from rclpy.signals import SignalHandlerGuardCondition
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -579,9 +578,9 @@ class TableServer(Node):
     def serve(self) -> None:
         """Spin until shutdown: the inputs in this thread, everything else in a second one.
 
-        This thread waits on a wait set holding only the inputs and two guard conditions
-        (SIGINT/SIGTERM, shutdown) and drains every ready input: per message it pays one
-        rcl_wait over 4 entities. rcl_wait's cost grows with the entities in the set (each
+        This thread waits on a wait set holding only the inputs and one guard condition
+        (stop) and drains every ready input: per message it pays one rcl_wait over 3
+        entities. rcl_wait's cost grows with the entities in the set (each
         is attached to and detached from the wait), and a node's timers, parameter
         services and ~/reload are 12 more; rclpy's executor also rebuilds its wait set in
         Python on every call. So timers, services and parameters run in rclpy's executor in
@@ -607,14 +606,20 @@ class TableServer(Node):
                 failed.append(err)
                 self.context.try_shutdown()
             finally:                            # wake the main thread: it stops too
+                wake()
+
+        # woken by the executor thread's end (SIGINT/SIGTERM reach it through rclpy's own
+        # signal guard condition) and by a shutdown of the context from Python
+        stop = GuardCondition(None, None, context=self.context)
+
+        def wake() -> None:
+            with contextlib.suppress(InvalidHandle):
                 stop.trigger()
 
-        sigint = SignalHandlerGuardCondition(self.context)
-        stop = GuardCondition(None, None, context=self.context)
-        self.context.on_shutdown(stop.trigger)
+        self.context.on_shutdown(wake)
         subs = [sub for sub, _, _ in self._inputs]
         handlers = [handle for _, handle, _ in self._inputs]
-        guards = [sigint, stop]
+        guards = [stop]
         wait_set = _rclpy.WaitSet(len(subs), len(guards), 0, 0, 0, 0, self.context.handle)
         thread = threading.Thread(target=housekeeping, name='table_server housekeeping',
                                   daemon=True)
@@ -641,12 +646,19 @@ class TableServer(Node):
                         if sub_handle.pointer in ready:
                             self._drain(sub, handle)
         finally:
-            executor.shutdown(timeout_sec=5.0)
+            # After a signal the executor thread ends by itself (its context is down) and
+            # nothing is destroyed here: rclpy's signal thread may still be triggering the
+            # executor's signal guard condition, and executor.shutdown() would destroy it
+            # under that thread (a segfault in rmw's trigger, seen once under load). Only a
+            # stop with the context still up (an error here) shuts the executor down.
+            if self.context.ok():
+                executor.shutdown(timeout_sec=5.0)
             thread.join(timeout=10.0)
+            if thread.is_alive():
+                executor.shutdown(timeout_sec=5.0)
+                thread.join(timeout=10.0)
             self._inputs_group.direct = False
             executor.remove_node(self)
-            sigint.destroy()
-            stop.destroy()
         if failed:
             raise failed[0]
 
