@@ -23,7 +23,7 @@ from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseStamped
+from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
 import numpy as np
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
@@ -37,14 +37,17 @@ __all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'BadInputError', 'Att
            'stamp_ns', 'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped',
            'angles_from_joint_state', 'pose_stamped', 'pose_stamped_for_attitude',
            'joint_state', 'pose_from_msg', 'mesh_marker', 'MARKER_ID_STRIDE',
-           'display_mesh_paths', 'body_markers', 'diagnostic_status']
+           'display_mesh_paths', 'body_markers', 'diagnostic_status',
+           'rigid_from_pose_stamped', 'transform_stamped', 'UNSTAMPED',
+           'angles_from_orientation', 'angles_from_joints', 'rigid_from_fields']
 
 QUAT_NORM_TOL = 1e3 * TOL.unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
 JOINT_NAMES = ('knee_flexion', 'knee_varus')
 
 # Diagnostics counter names (keys `dropped_<reason>`), in display order.
 DROP_REASONS = ('nonfinite', 'quaternion', 'frame_id', 'joint_names', 'lengths',
-                'out_of_range')
+                'out_of_range', 'unpaired', 'stale', 'malformed')
+UNSTAMPED = 0   # header.stamp of a message nobody stamped (e.g. `ros2 topic pub`'s default)
 
 
 class BadInputError(KneeseatError):
@@ -120,12 +123,18 @@ def angles_from_pose_stamped(msg: PoseStamped, axes: KneeAxes | AttitudeDecoder,
         BadInputError: wrong or empty frame_id ('frame_id'), NaN/inf ('nonfinite'), a zero
             or non-unit quaternion ('quaternion').
     """
-    got = msg.header.frame_id
-    if got != frame_id:
-        raise BadInputError('frame_id', f'PoseStamped frame_id {got!r} is not the table '
+    return angles_from_orientation(msg.header.frame_id, quat_xyzw(msg.pose), axes, frame_id)
+
+
+def angles_from_orientation(got_frame: str, quat: Sequence[float],
+                            axes: KneeAxes | AttitudeDecoder,
+                            frame_id: str) -> tuple[float, float]:
+    """`angles_from_pose_stamped` on the fields: the message's frame_id and (x, y, z, w)."""
+    if got_frame != frame_id:
+        raise BadInputError('frame_id', f'PoseStamped frame_id {got_frame!r} is not the table '
                             f'reference frame {frame_id!r}; publish the tibia orientation '
                             f'in {frame_id!r}')
-    x, y, z, w = quat_xyzw(msg.pose)
+    x, y, z, w = quat
     norm = math.sqrt(x * x + y * y + z * z + w * w)
     if not math.isfinite(norm):
         raise BadInputError('nonfinite', 'PoseStamped orientation has NaN or inf '
@@ -138,6 +147,51 @@ def angles_from_pose_stamped(msg: PoseStamped, axes: KneeAxes | AttitudeDecoder,
     return decoder.angles(x / norm, y / norm, z / norm, w / norm)
 
 
+def rigid_from_pose_stamped(msg: PoseStamped, frame_id: str,
+                            what: str) -> tuple[float, float, float, float, float, float, float]:
+    """(px, py, pz, qx, qy, qz, qw) of a tracked rigid body's pose in `frame_id`.
+
+    The quaternion is normalised (within `QUAT_NORM_TOL` of unit length).
+
+    Raises:
+        BadInputError: wrong or empty frame_id ('frame_id'), NaN/inf ('nonfinite'), a zero
+            or non-unit quaternion ('quaternion'). The message names `what`.
+    """
+    p = msg.pose.position
+    return rigid_from_fields(msg.header.frame_id, (p.x, p.y, p.z, *quat_xyzw(msg.pose)),
+                             frame_id, what)
+
+
+def rigid_from_fields(got_frame: str, pose: Sequence[float], frame_id: str,
+                      what: str) -> tuple[float, float, float, float, float, float, float]:
+    """`rigid_from_pose_stamped` on the fields: frame_id and (px, py, pz, qx, qy, qz, qw)."""
+    if got_frame != frame_id:
+        raise BadInputError('frame_id', f'{what} frame_id {got_frame!r} is not the world frame '
+                            f'{frame_id!r}; set tracker.world_frame or fix the tracker')
+    px, py, pz, x, y, z, w = pose
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (math.isfinite(norm) and math.isfinite(px + py + pz)):
+        raise BadInputError('nonfinite', f'{what} pose has NaN or inf; fix the tracker output')
+    if abs(1.0 - norm) > QUAT_NORM_TOL:
+        raise BadInputError('quaternion', f'{what} orientation |q| = {norm:.6g} is not a unit '
+                            f'quaternion (tolerance {QUAT_NORM_TOL:g}); send normalised '
+                            '(x, y, z, w)')
+    return (px, py, pz, x / norm, y / norm, z / norm, w / norm)
+
+
+def transform_stamped(pose: Sequence[float], stamp: Time, parent: str,
+                      child: str) -> TransformStamped:
+    """TransformStamped parent -> child from (px, py, pz, qx, qy, qz, qw)."""
+    msg = TransformStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = parent
+    msg.child_frame_id = child
+    t, r = msg.transform.translation, msg.transform.rotation
+    t.x, t.y, t.z = float(pose[0]), float(pose[1]), float(pose[2])
+    r.x, r.y, r.z, r.w = float(pose[3]), float(pose[4]), float(pose[5]), float(pose[6])
+    return msg
+
+
 def angles_from_joint_state(msg: JointState,
                             names: Sequence[str] = JOINT_NAMES) -> tuple[float, float]:
     """(flexion, varus) in rad from a JointState carrying `names` (extra joints ignored).
@@ -147,17 +201,25 @@ def angles_from_joint_state(msg: JointState,
             `name` ('lengths'), a name is missing ('joint_names'), a value is NaN/inf
             ('nonfinite').
     """
-    n = len(msg.name)
-    if len(msg.position) != n or len(msg.velocity) not in (0, n) or len(msg.effort) not in (0, n):
-        raise BadInputError('lengths', f'JointState has {n} names but {len(msg.position)} '
-                            f'positions, {len(msg.velocity)} velocities, {len(msg.effort)} '
+    return angles_from_joints(msg.name, msg.position, len(msg.velocity), len(msg.effort),
+                              names)
+
+
+def angles_from_joints(joint_names: Sequence[str], position: Sequence[float],
+                       n_velocity: int, n_effort: int,
+                       names: Sequence[str] = JOINT_NAMES) -> tuple[float, float]:
+    """`angles_from_joint_state` on the fields: names, positions, velocity/effort counts."""
+    n = len(joint_names)
+    if len(position) != n or n_velocity not in (0, n) or n_effort not in (0, n):
+        raise BadInputError('lengths', f'JointState has {n} names but {len(position)} '
+                            f'positions, {n_velocity} velocities, {n_effort} '
                             'efforts; send one position per name')
     try:
-        index = [msg.name.index(name) for name in names]
+        index = [joint_names.index(name) for name in names]
     except ValueError:
-        raise BadInputError('joint_names', f'JointState names {list(msg.name)} lack '
+        raise BadInputError('joint_names', f'JointState names {list(joint_names)} lack '
                             f'{list(names)}; publish both joints (radians)') from None
-    flexion, varus = (float(msg.position[i]) for i in index)
+    flexion, varus = (float(position[i]) for i in index)
     if not (math.isfinite(flexion) and math.isfinite(varus)):
         raise BadInputError('nonfinite', f'JointState {names[0]}={flexion}, '
                             f'{names[1]}={varus} is not finite; fix the publisher')

@@ -3,7 +3,8 @@
 Everything comes from the interface packages installed with the ROS wheels: the `.msg`
 text from `<share>/<pkg>/msg/<Type>.msg` and the RIHS01 type hash from
 `<share>/<pkg>/msg/<Type>.json`, where `<share>` is found through the ament index
-(`AMENT_PREFIX_PATH` must include the virtual environment's prefix).
+(`AMENT_PREFIX_PATH`) or, when that is unset or lacks the package, beside the installed
+Python package (`<prefix>/lib/pythonX.Y/site-packages/<pkg>` -> `<prefix>/share/<pkg>`).
 
 Schema text (rosbag2 Jazzy, `ros2msg` encoding): the root type's `.msg` text, then for
 each dependency, depth-first, sorted by name within one definition, each type once:
@@ -20,10 +21,12 @@ from __future__ import annotations
 
 import functools
 import importlib
+import importlib.util
 import json
 from pathlib import Path
 import re
 import struct
+import sys
 from typing import Any
 
 from ament_index_python.packages import get_package_share_directory, PackageNotFoundError
@@ -60,14 +63,44 @@ def split_type(msg_type: str) -> tuple[str, str]:
     return match.group(1), match.group(3)
 
 
-def _msg_dir(package: str, msg_type: str) -> Path:
+def _installed_share(package: str) -> Path | None:
+    """`<prefix>/share/<package>` of an importable interface package, without the index.
+
+    Wheels, colcon and apt all install `<prefix>/lib/pythonX.Y/site-packages/<package>/`
+    beside `<prefix>/share/<package>/`; the Python interpreter's own prefix is tried too.
+    """
+    prefixes = []
     try:
-        return Path(get_package_share_directory(package)) / 'msg'
-    except (PackageNotFoundError, LookupError, ValueError):
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        spec = None
+    if spec is not None and spec.origin:
+        # <prefix>/lib/pythonX.Y/site-packages/<package>/__init__.py (or dist-packages)
+        prefixes.append(Path(spec.origin).resolve().parents[4])
+    prefixes.append(Path(sys.prefix))
+    for prefix in prefixes:
+        share = prefix / 'share' / package
+        if (share / 'package.xml').is_file():
+            return share
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def _share_dir(package: str) -> Path | None:
+    try:
+        return Path(get_package_share_directory(package))
+    except (PackageNotFoundError, LookupError, ValueError, OSError):
+        return _installed_share(package)
+
+
+def _msg_dir(package: str, msg_type: str) -> Path:
+    share = _share_dir(package)
+    if share is None:
         raise MessageTypeError(
-            f'interface package {package!r} of {msg_type!r} not found in the ament index; '
-            'install its ROS wheel and put the venv prefix on AMENT_PREFIX_PATH '
-            '(. scripts/env.sh)') from None
+            f'interface package {package!r} of {msg_type!r} not found (neither in the ament '
+            'index nor beside its Python package); install its ROS wheel, or put its '
+            'install prefix on AMENT_PREFIX_PATH') from None
+    return share / 'msg'
 
 
 def message_class(msg_type: str) -> Any:

@@ -38,6 +38,7 @@ from kneeseat_core.errors import KneeseatError
 from .msgdefs import message_definition, MessageTypeError, serialize, type_hash
 
 __all__ = ['RecorderError', 'BagRecorder', 'TopicSpec', 'RecoveryReport', 'qos_to_dicts',
+           'topic_spec',
            'read_readable', 'recover', 'DEFAULT_QOS', 'METADATA_NAME']
 
 PROFILE = 'ros2'
@@ -114,6 +115,23 @@ class _OpenFile:
     last_tell: int = 0
     pending_bytes: int = 0         # uncompressed bytes in the open chunk (estimate)
     last_flush_ns: int = -1
+
+
+def topic_spec(topic: str, msg_type: str, qos: QoSProfile | None = None) -> TopicSpec:
+    """Everything a bag stores about one topic, from the installed message package.
+
+    Args:
+        topic: the topic name, e.g. '/knee/pose'.
+        msg_type: like 'geometry_msgs/msg/PoseStamped'.
+        qos: the QoS offered by its publisher (rclpy's default profile if None).
+    Raises:
+        RecorderError: the type's definition or hash cannot be found.
+    """
+    try:
+        return TopicSpec(topic, msg_type, message_definition(msg_type), type_hash(msg_type),
+                         tuple(qos_to_dicts(qos if qos is not None else DEFAULT_QOS)))
+    except MessageTypeError as err:
+        raise RecorderError(f'cannot record {topic}: {err}') from None
 
 
 class BagRecorder:
@@ -209,12 +227,7 @@ class BagRecorder:
         Raises:
             RecorderError: the type is unknown, or the topic was added with another type.
         """
-        try:
-            spec = TopicSpec(topic, msg_type, message_definition(msg_type), type_hash(msg_type),
-                             tuple(qos_to_dicts(qos if qos is not None else DEFAULT_QOS)))
-        except MessageTypeError as err:
-            raise RecorderError(f'cannot record {topic}: {err}') from None
-        self.add_spec(spec)
+        self.add_spec(topic_spec(topic, msg_type, qos))
 
     def add_spec(self, spec: TopicSpec) -> None:
         """Declare a topic from a ready `TopicSpec` (used by `recover`); idempotent per topic.

@@ -8,10 +8,15 @@ ament index there), so plain `python -m pytest` works without sourcing scripts/e
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+import fcntl
+import hashlib
 import itertools
 import os
 from pathlib import Path
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
 from typing import Any
 
@@ -20,6 +25,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / 'shared' / 'data'
+# Build/install tools for what PyPI lacks (see README, "The ROS 2 node"): the Jazzy `ros2`
+# CLI sources and a colcon build of tf2_msgs against the venv's ROS wheels.
+SHARED_TOOLS = REPO.parent / 'shared' / 'tools'
+TF2_MSGS_BUILD = SHARED_TOOLS / 'tf2_msgs' / 'build'
+ROS2CLI_INSTALL = SHARED_TOOLS / 'ros2cli' / 'install'
 _DOMAIN_COUNTER = itertools.count()
 
 
@@ -125,3 +135,104 @@ def write_synthetic_table(path: Path, **kwargs: Any) -> Path:
     from kneeseat_core.table import write_table
     write_table(path, synthetic_table(**kwargs))
     return path
+
+
+def _cache_dir(name: str) -> Path:
+    """A per-venv cache folder under the temp dir (kept between runs, locked while built)."""
+    tag = hashlib.sha256(sys.prefix.encode()).hexdigest()[:10]
+    path = Path(tempfile.gettempdir()) / f'kneeseat-{name}-{tag}'
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _locked_run(lock: Path, args: list[str], timeout_s: float) -> subprocess.CompletedProcess:
+    with open(lock, 'w') as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        return subprocess.run(args, capture_output=True, text=True, timeout=timeout_s)
+
+
+@pytest.fixture(scope='session')
+def tf2_msgs_env() -> dict[str, str]:
+    """Environment with tf2_msgs built by the shared tool (cached per venv; slow once).
+
+    Skips with the reason when the tool, a C/C++ compiler, make or Python.h is missing.
+    LD_LIBRARY_PATH must be set before Python starts: use it for subprocesses only.
+    """
+    import sysconfig
+    if not TF2_MSGS_BUILD.is_file():
+        pytest.skip(f'tf2_msgs build tool not found at {TF2_MSGS_BUILD}')
+    for tool in ('cc', 'c++', 'make'):
+        if shutil.which(tool) is None:
+            pytest.skip(f'no {tool!r} on PATH: the tf2_msgs build needs a C/C++ toolchain '
+                        '(apt-get install build-essential)')
+    if not (Path(sysconfig.get_paths()['include']) / 'Python.h').is_file():
+        pytest.skip('no Python.h for this interpreter: the tf2_msgs build needs the Python '
+                    'development headers')
+    prefix = _cache_dir('tf2_msgs')
+    done = _locked_run(prefix.with_suffix('.lock'),
+                       [str(TF2_MSGS_BUILD), sys.executable, str(prefix)], 600)
+    assert done.returncode == 0, f'tf2_msgs build failed:\n{done.stderr[-3000:]}'
+    env = dict(os.environ)
+    for line in done.stdout.splitlines():      # export NAME="value${NAME:+:$NAME}"
+        name, value = line.removeprefix('export ').split('=', 1)
+        value = value.strip('"').split('${')[0].rstrip(':')
+        old = env.get(name)
+        env[name] = f'{value}{os.pathsep}{old}' if old else value
+    return env
+
+
+@pytest.fixture(scope='session')
+def ros2_cli() -> Path:
+    """The folder holding the real Jazzy `ros2` CLI (installed once per venv from the tool).
+
+    Use as `PYTHONPATH=<folder> <folder>/bin/ros2`. Skips with the reason when the tool is
+    missing.
+    """
+    if not ROS2CLI_INSTALL.is_file():
+        pytest.skip(f'ros2 CLI install tool not found at {ROS2CLI_INSTALL}')
+    target = _cache_dir('ros2cli')
+    done = _locked_run(target.with_suffix('.lock'),
+                       [str(ROS2CLI_INSTALL), sys.executable, str(target)], 300)
+    assert done.returncode == 0, f'ros2 CLI install failed:\n{done.stderr[-3000:]}'
+    assert (target / 'bin' / 'ros2').is_file()
+    return target
+
+
+@pytest.fixture(scope='session')
+def colcon_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The package built once with the venv's colcon; returns install/kneeseat_ros.
+
+    `pip install --prefix` would put the scripts in bin/, which `ros2 run` does not search.
+    """
+    colcon = Path(sys.prefix) / 'bin' / 'colcon'
+    if not colcon.exists():
+        pytest.fail(f'{colcon} missing: run ./scripts/setup (requirements/dev.txt has '
+                    'colcon-common-extensions)')
+    ws = tmp_path_factory.mktemp('ws')
+    src = ws / 'src' / 'kneeseat_ros'
+    src.mkdir(parents=True)
+    ignore = shutil.ignore_patterns('__pycache__', '*.pyc', '*.egg-info')
+    for name in ('package.xml', 'setup.py', 'setup.cfg', 'resource', 'kneeseat_core',
+                 'kneeseat_ros', 'config'):
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, src / name, ignore=ignore)
+        else:
+            shutil.copy2(REPO / name, src / name)
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE='1')
+    done = subprocess.run([str(colcon), 'build', '--base-paths', 'src'], cwd=ws, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, f'colcon build failed:\n{done.stdout}\n{done.stderr}'
+    return ws / 'install' / 'kneeseat_ros'
+
+
+def install_env(prefix: Path, base: dict[str, str] | None = None) -> dict[str, str]:
+    """What `source install/setup.bash` would set, on top of the venv's ROS wheels."""
+    py = f'python{sys.version_info.major}.{sys.version_info.minor}'
+    site = prefix / 'lib' / py / 'site-packages'
+    env = dict(os.environ if base is None else base)
+    env['PYTHONPATH'] = os.pathsep.join([str(site), *filter(None, [env.get('PYTHONPATH')])])
+    ament = [p for p in env.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    env['AMENT_PREFIX_PATH'] = os.pathsep.join(
+        [str(prefix), *[p for p in ament if p != str(prefix)],
+         *([] if sys.prefix in ament else [sys.prefix])])
+    return env

@@ -7,15 +7,13 @@ from the install tree (PYTHONPATH = the install's site-packages) and must answer
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
 import os
 from pathlib import Path
-import shutil
 import subprocess
 import sys
 from typing import Any
 
-from conftest import REPO, write_synthetic_table
+from conftest import install_env, write_synthetic_table
 import pytest
 from test_table_server import assert_answer, Probe, ServerProcess
 
@@ -24,41 +22,11 @@ from kneeseat_ros.conversions import joint_state
 
 pytestmark = pytest.mark.ros
 
-SOURCES = ('package.xml', 'setup.py', 'setup.cfg', 'resource', 'kneeseat_core',
-           'kneeseat_ros', 'config')
-COLCON = Path(sys.prefix) / 'bin' / 'colcon'
-PY = f'python{sys.version_info.major}.{sys.version_info.minor}'
-
 
 @pytest.fixture(scope='module')
-def install(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """Build the package once with colcon; yields install/kneeseat_ros."""
-    if not COLCON.exists():
-        pytest.fail(f'{COLCON} missing: run ./scripts/setup (requirements/dev.txt has '
-                    'colcon-common-extensions)')
-    ws = tmp_path_factory.mktemp('ws')
-    src = ws / 'src' / 'kneeseat_ros'
-    src.mkdir(parents=True)
-    ignore = shutil.ignore_patterns('__pycache__', '*.pyc', '*.egg-info')
-    for name in SOURCES:
-        if (REPO / name).is_dir():
-            shutil.copytree(REPO / name, src / name, ignore=ignore)
-        else:
-            shutil.copy2(REPO / name, src / name)
-    env = dict(os.environ, PYTHONDONTWRITEBYTECODE='1')
-    done = subprocess.run([str(COLCON), 'build', '--base-paths', 'src'], cwd=ws, env=env,
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, f'colcon build failed:\n{done.stdout}\n{done.stderr}'
-    yield ws / 'install' / 'kneeseat_ros'
-
-
-def install_env(prefix: Path) -> dict[str, str]:
-    """What `source install/setup.bash` would set, on top of the venv's ROS wheels."""
-    site = prefix / 'lib' / PY / 'site-packages'
-    env = dict(os.environ)
-    env['PYTHONPATH'] = os.pathsep.join([str(site), *filter(None, [env.get('PYTHONPATH')])])
-    env['AMENT_PREFIX_PATH'] = os.pathsep.join([str(prefix), sys.prefix])
-    return env
+def install(colcon_install: Path) -> Path:
+    """install/kneeseat_ros of the session's colcon build (conftest.colcon_install)."""
+    return colcon_install
 
 
 def test_colcon_gives_the_ament_layout(install: Path) -> None:

@@ -16,8 +16,9 @@ import sys
 import time
 from typing import Any
 
-from conftest import ros_env, spin_until, synthetic_table, write_synthetic_table
-from diagnostic_msgs.msg import DiagnosticArray
+from conftest import (next_domain_id, REPO, ros_env, spin_until, synthetic_table,
+                      write_synthetic_table)
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 import yaml
 
+from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import matrix_from_quat
 from kneeseat_core.table import PoseTable, read_table
 from kneeseat_ros.conversions import (joint_state, pose_stamped, pose_stamped_for_attitude,
@@ -48,19 +50,28 @@ class ServerProcess:
 
     def __init__(self, tmp_path: Path, domain_id: int, table: Path, *params: str,
                  executable: Path = TABLE_SERVER, env: dict[str, str] | None = None,
-                 ros_args: list[str] | None = None) -> None:
+                 ros_args: list[str] | None = None, exact_env: bool = False) -> None:
+        """Start the server; `exact_env` uses `env` as given (no ros_env additions)."""
+        tmp_path.mkdir(parents=True, exist_ok=True)
         self.out, self.err = tmp_path / 'server.out', tmp_path / 'server.err'
         args = [str(executable), '--ros-args', *(ros_args or []), '-p', f'table:={table}']
         for p in params:
             args += ['-p', p]
         with open(self.out, 'wb') as out, open(self.err, 'wb') as err:
-            self.proc = subprocess.Popen(args, stdout=out, stderr=err,
-                                         env=ros_env(domain_id, env))
+            self.proc = subprocess.Popen(
+                args, stdout=out, stderr=err,
+                env=env if exact_env and env is not None else ros_env(domain_id, env))
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
+        """Send `sig` and wait; a node that does not exit is killed (and the test fails)."""
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
-        return self.proc.wait(timeout=timeout_s)
+        try:
+            return self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+            raise
 
     def stderr(self) -> str:
         return self.err.read_text()
@@ -75,42 +86,57 @@ class ServerProcess:
 class Probe:
     """A test node: publishes tracker and joint inputs, collects every output."""
 
-    def __init__(self, context: Any, bodies: tuple[str, ...] = BODIES) -> None:
-        self.node = rclpy.create_node('probe', context=context)
+    def __init__(self, context: Any, bodies: tuple[str, ...] = BODIES, ns: str = '',
+                 node: str = 'table_server', name: str = 'probe') -> None:
+        self.ns = ns
+        self.node = rclpy.create_node(name, context=context)
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         # reliable tracker, best-effort joints: the node must accept both
-        self.pose_pub = self.node.create_publisher(PoseStamped, '/knee/pose', RELIABLE)
-        self.joint_pub = self.node.create_publisher(JointState, '/knee/joint_states',
+        self.pose_pub = self.node.create_publisher(PoseStamped, f'{ns}/knee/pose', RELIABLE)
+        self.joint_pub = self.node.create_publisher(JointState, f'{ns}/knee/joint_states',
                                                     qos_profile_sensor_data)
         self.answers: dict[tuple[str, int], PoseStamped] = {}
+        self.arrivals: list[tuple[str, int]] = []
         for body in bodies:
             self.node.create_subscription(
-                PoseStamped, f'/knee/{body}/pose',
-                lambda msg, body=body: self.answers.__setitem__(
-                    (body, stamp_ns(msg.header.stamp)), msg), RELIABLE)
+                PoseStamped, f'{ns}/knee/{body}/pose',
+                lambda msg, body=body: self._on_answer(body, msg), RELIABLE)
         self.status: dict[str, str] = {}
+        self.level = b''
+        self.hardware_id = ''
+        self.levels: list[bytes] = []
+        self.history: list[dict[str, str]] = []
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, RELIABLE)
         self.markers: list[MarkerArray] = []
-        self.node.create_subscription(MarkerArray, '/knee/markers', self.markers.append,
+        self.node.create_subscription(MarkerArray, f'{ns}/knee/markers', self.markers.append,
                                       RELIABLE)
-        self.reload = self.node.create_client(Trigger, '/table_server/reload')
+        self.reload = self.node.create_client(Trigger, f'{ns}/{node}/reload')
         self._stamp = 1_000_000_000_000
+
+    def _on_answer(self, body: str, msg: PoseStamped) -> None:
+        key = (body, stamp_ns(msg.header.stamp))
+        self.answers[key] = msg
+        self.arrivals.append(key)
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            if status.name == STATUS_NAME:
+            if status.name == STATUS_NAME and status.hardware_id.startswith(f'{self.ns}/'):
                 self.status = {kv.key: kv.value for kv in status.values}
+                self.level, self.hardware_id = status.level, status.hardware_id
+                self.levels.append(status.level)
+                self.history.append(dict(self.status))
 
     def next_stamp(self) -> Any:
         self._stamp += 1_000_003
         return stamp_from_ns(self._stamp)
 
     def wait_connected(self, bodies: tuple[str, ...] = BODIES) -> None:
+        topics = [f'{self.ns}/knee/{b}/pose' for b in bodies]
         spin_until(self.executor, lambda: (
             self.pose_pub.get_subscription_count() > 0
             and self.joint_pub.get_subscription_count() > 0
-            and all(self.node.count_publishers(f'/knee/{b}/pose') > 0 for b in bodies)),
+            and all(self.node.count_publishers(t) > 0 for t in topics)),
             timeout_s=20.0, what='discovery of table_server')
 
     def ask(self, msg: Any, bodies: tuple[str, ...] = BODIES) -> dict[str, PoseStamped]:
@@ -407,7 +433,196 @@ def test_in_process_node_answers_and_reports(context: Any, table_path: Path) -> 
         values = {kv.key: kv.value for kv in status.values}
         assert values['answered'] == '1' and values['recorder'] == 'off'
         assert float(values['latency_p50_ms']) >= 0.0
-        assert status.name == STATUS_NAME and status.hardware_id == 'femur'
+        assert status.name == STATUS_NAME and status.hardware_id == '/table_server'
     finally:
         probe.destroy()
         server.destroy_node()
+
+
+def _params_file(path: Path, **overrides: Any) -> Path:
+    """The shipped params file (keyed /**) with some values changed."""
+    data = yaml.safe_load((REPO / 'config' / 'table_server.yaml').read_text())
+    assert list(data) == ['/**']
+    data['/**']['ros__parameters'].update(overrides)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_namespaces_keep_two_servers_apart(tmp_path: Path, domain_id: int,
+                                           context: Any) -> None:
+    """/left and /right on one graph: one input each, one answer each, params file applied."""
+    tables = {'left': write_synthetic_table(tmp_path / 'left.npz', seed=5),
+              'right': write_synthetic_table(tmp_path / 'right.npz', seed=6, offset_m=0.05)}
+    params = _params_file(tmp_path / 'params.yaml', out_of_range='drop',
+                          diagnostics_period_s=0.2)
+    servers, probes = {}, {}
+    try:
+        for side, node in (('left', 'table_server'), ('right', 'right_knee')):
+            servers[side] = ServerProcess(
+                tmp_path / side, domain_id, tables[side],
+                ros_args=['--params-file', str(params), '-r', f'__ns:=/{side}',
+                          '-r', f'__node:={node}'])
+            probes[side] = Probe(context, ns=f'/{side}', node=node, name=f'probe_{side}')
+        for probe in probes.values():
+            probe.wait_connected()
+        stamps = {}
+        for side, probe in probes.items():
+            table = read_table(tables[side])
+            msg = joint_state(-0.5, 0.02, probe.next_stamp())
+            stamps[side] = stamp_ns(msg.header.stamp)
+            assert_answer(table, msg, probe.ask(msg))
+        for side, probe in probes.items():
+            status = probe.wait_status({'answered': '1', 'out_of_range': 'drop'})
+            assert status['received'] == '1'
+            assert probe.hardware_id == ('/left/table_server' if side == 'left'
+                                         else '/right/right_knee')
+        # each probe saw its own server's answers only, once per body
+        assert sorted(probes['left'].arrivals) == sorted((b, stamps['left']) for b in BODIES)
+        assert sorted(probes['right'].arrivals) == sorted((b, stamps['right']) for b in BODIES)
+        assert probes['right'].answers[('tibia', stamps['right'])].pose.position.x > 0.04
+        assert probes['left'].answers[('tibia', stamps['left'])].pose.position.x < 0.04
+    finally:
+        for probe in probes.values():
+            probe.destroy()
+        for srv in servers.values():
+            srv.stop_clean()
+
+
+def test_diagnostics_window_unstamped_and_joint_names(tmp_path: Path, domain_id: int,
+                                                      table_path: Path, probe: Probe) -> None:
+    table = read_table(table_path)
+    names = ('hip_flexion', 'hip_varus')
+    srv = ServerProcess(tmp_path, domain_id, table_path, 'diagnostics_period_s:=0.1',
+                        'diagnostics_window_s:=0.5', f'flexion_joint:={names[0]}',
+                        f'varus_joint:={names[1]}')
+    try:
+        probe.wait_connected()
+        # stamped with the clock (not the probe's made-up stamps): a real latency
+        msg = joint_state(-0.3, 0.0, stamp_from_ns(time.time_ns()), names=names)
+        assert_answer(table, msg, probe.ask(msg))
+        spin_until(probe.executor, lambda: probe.level == DiagnosticStatus.OK
+                   and probe.status.get('answered') == '1', what='OK after one answer')
+        # the default names are unknown now: dropped, WARN for a while, then OK again
+        probe.joint_pub.publish(joint_state(-0.3, 0.0, probe.next_stamp()))
+        probe.wait_status({'dropped_joint_names': '1', 'dropped_recent': '1'})
+        assert probe.level == DiagnosticStatus.WARN
+        status = probe.wait_status({'dropped_recent': '0'})
+        assert probe.level == DiagnosticStatus.OK and status['dropped'] == '1'
+        # unstamped (stamp 0, as `ros2 topic pub` sends): answered, counted, no latency
+        unstamped = joint_state(-0.4, 0.01, stamp_from_ns(0), names=names)
+        assert_answer(table, unstamped, probe.ask(unstamped))
+        probe.wait_status({'unstamped': '1', 'answered': '2'})
+        latencies = [float(h['latency_max_ms']) for h in probe.history]
+        assert all(math.isnan(v) or 0.0 <= v < 60_000.0 for v in latencies), latencies
+    finally:
+        srv.stop_clean()
+
+
+def test_table_parameter_names_the_served_table(server: ServerProcess, probe: Probe,
+                                                table_path: Path, tmp_path: Path) -> None:
+    from rclpy.parameter_client import AsyncParameterClient
+    probe.wait_connected()
+    client = AsyncParameterClient(probe.node, '/table_server')
+    spin_until(probe.executor, client.services_are_ready, what='parameter services')
+
+    def call(future: Any) -> Any:
+        spin_until(probe.executor, future.done, what='parameter service answer')
+        return future.result()
+
+    def table_param() -> str:
+        return call(client.get_parameters(['table'])).values[0].string_value
+
+    assert table_param() == str(table_path)
+    bad = tmp_path / 'bad.npz'
+    bad.write_bytes(b'not a table')
+    result = call(client.set_parameters([Parameter('table', value=str(bad))])).results[0]
+    assert not result.successful and 'still serving' in result.reason
+    assert str(bad) in result.reason
+    assert table_param() == str(table_path)
+    msg = joint_state(-0.6, 0.02, probe.next_stamp())
+    assert_answer(read_table(table_path), msg, probe.ask(msg))
+    new = write_synthetic_table(tmp_path / 'new.npz', seed=9, offset_m=0.05)
+    result = call(client.set_parameters([Parameter('table', value=str(new))])).results[0]
+    assert result.successful, result.reason
+    assert table_param() == str(new)
+    msg = joint_state(-0.6, 0.02, probe.next_stamp())
+    assert_answer(read_table(new), msg, probe.ask(msg))
+    probe.wait_status({'table': str(new)})
+    server.stop_clean()
+
+
+def test_help_prints_usage(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['table_server', '--help']) == 0
+    assert capsys.readouterr().out.startswith('usage: table_server')
+    for args in (['--ros-args', '--help'], ['-h']):
+        done = subprocess.run([str(TABLE_SERVER), *args], capture_output=True, text=True,
+                              timeout=60, env=ros_env(next_domain_id()))
+        assert done.returncode == 0 and 'Traceback' not in done.stderr, done.stderr
+        assert done.stdout.startswith('usage: table_server')
+    done = subprocess.run([str(TABLE_SERVER), '--ros-args', '-r', 'nonsense'],
+                          capture_output=True, text=True, timeout=60,
+                          env=ros_env(next_domain_id()))
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'bad command-line arguments' in lines[0], done.stderr
+
+
+def test_records_without_ament_prefix_path(tmp_path: Path, domain_id: int, table_path: Path,
+                                           probe: Probe) -> None:
+    """Started straight from the venv (no scripts/env.sh): message definitions still found."""
+    env = ros_env(domain_id)
+    env.pop('AMENT_PREFIX_PATH')
+    record = tmp_path / 'bags'
+    srv = ServerProcess(tmp_path, domain_id, table_path, f'record:={record}',
+                        'diagnostics_period_s:=0.1', env=env, exact_env=True)
+    try:
+        probe.wait_connected()
+        probe.ask(joint_state(-0.2, 0.0, probe.next_stamp()))
+        probe.wait_status({'answered': '1'})
+    finally:
+        srv.stop_clean()
+    bags = list(record.glob('kneeseat_*'))
+    assert len(bags) == 1, bags
+    info = yaml.safe_load((bags[0] / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    counts = {t['topic_metadata']['name']: t['message_count']
+              for t in info['topics_with_message_count']}
+    assert counts['/knee/tibia/pose'] == counts['/knee/joint_states'] == 1
+
+
+def test_record_refused_at_start_leaves_nothing(tmp_path: Path, table_path: Path,
+                                                context: Any,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A message definition that cannot be found: ConfigError naming it, no bag directory."""
+    from kneeseat_ros import msgdefs
+    monkeypatch.setattr(msgdefs, '_share_dir', lambda package: None)
+    msgdefs.message_definition.cache_clear()
+    msgdefs.type_hash.cache_clear()
+    msgdefs._msg_text.cache_clear()
+    record = tmp_path / 'bags'
+    try:
+        with pytest.raises(ConfigError, match=r"parameter 'record': cannot record .*not found"):
+            TableServer(context=context, parameter_overrides=[
+                Parameter('table', value=str(table_path)),
+                Parameter('record', value=str(record))])
+    finally:
+        msgdefs.message_definition.cache_clear()
+        msgdefs.type_hash.cache_clear()
+        msgdefs._msg_text.cache_clear()
+    assert not record.exists()
+
+
+def test_debug_logging_does_not_flood_when_idle(tmp_path: Path, domain_id: int,
+                                                table_path: Path, probe: Probe) -> None:
+    srv = ServerProcess(tmp_path, domain_id, table_path, 'diagnostics_period_s:=0.25',
+                        ros_args=['--log-level', 'debug'])
+    try:
+        probe.wait_connected()
+        probe.wait_status({'answered': '0'})
+        start, t0 = len(srv.stderr().splitlines()), time.monotonic()
+        seen = len(probe.history)
+        spin_until(probe.executor, lambda: len(probe.history) >= seen + 8,
+                   what='8 diagnostics periods')
+        rate = (len(srv.stderr().splitlines()) - start) / (time.monotonic() - t0)
+        assert rate < 100.0, f'{rate:.0f} debug lines/s while idle'
+    finally:
+        srv.stop_clean()
