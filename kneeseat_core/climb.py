@@ -20,8 +20,7 @@ over a small state object (`_Climb`):
   26 directions (slides, spins and their combinations) at three scales, from the finest
   move to 16 times it, each lifted by a quarter resolution, must all collide; a probe that
   gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
-  At the two smaller scales a probe that the near-active patches prove hopeless by a wide
-  margin is not queried.
+  A probe that the near-active patches prove hopeless by a wide margin is not queried.
 - the envelope: the climb may not leave it (D6); where the envelope holds (a config's
   soft-tissue stand-in), the move is kept inside and a rest on its boundary is
   reported as constrained.
@@ -54,10 +53,11 @@ PROBE_SCALES = (1.0, 4.0, 16.0)
 PROBE_LIFT = 0.25
 # Before probing, the pose's contact bracket is narrowed to this many resolutions.
 FINE_PROBE = 1.0 / 64.0
-# Up to this scale, a probe the near-active patches' first-order model proves hopeless (by
-# more than a resolution) is not sent to python-fcl: normals would have to be off by more
-# than 30 degrees to hide a gain at these lengths.
-MODEL_PROBE_SCALE = 4.0
+# A probe that the near-active patches' first-order model says loses more than this many
+# resolutions (beyond the lift) is not sent to python-fcl, per probe scale: normals would
+# have to be off by tens of degrees, or the surface fold over within the probe, to hide a
+# gain behind such a loss.
+HOPELESS_RESOLUTIONS = {1.0: 1.0, 4.0: 1.0, 16.0: 5.0}
 # The longest single move, in translation steps.
 MAX_MOVE_STEPS = 4.0
 # Before rest is probed, the contact bracket is narrowed to this fraction of the tolerance,
@@ -68,27 +68,44 @@ _DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3)
 _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
 
 
-def _min_norm_point(points: Floats, iterations: int = 64) -> Floats:
-    """Minimum-norm point of the convex hull of `points` (k, d), by Frank-Wolfe.
-
-    Stops when the duality gap x.x - min_j p_j.x falls below 1e-4 x.x (the direction is
-    then exact to well under a degree).
-    """
-    x = points[int(np.argmin(np.einsum('ij,ij->i', points, points)))].copy()
-    for _ in range(iterations):
-        dots = points @ x
-        j = int(np.argmin(dots))
-        xx = float(x @ x)
-        if xx - float(dots[j]) <= 1e-4 * xx + 1e-18:
+def _min_norm_point(points: Floats) -> Floats:
+    """Minimum-norm point of the convex hull of `points` (k, d): Wolfe's algorithm (exact
+    in finitely many steps; the active set is at most d + 1 points)."""
+    sq = np.einsum('ij,ij->i', points, points)
+    if len(points) == 1:
+        return points[0].copy()
+    scale = float(sq.max())
+    active = [int(np.argmin(sq))]
+    weights = np.array([1.0])
+    x = points[active[0]].copy()
+    for _ in range(8 * len(points) + 16):
+        j = int(np.argmin(points @ x))
+        if float(x @ x) - float(points[j] @ x) <= 1e-12 * scale or j in active:
             break
-        d = points[j] - x
-        dd = float(d @ d)
-        if dd < 1e-30:
-            break
-        t = -float(x @ d) / dd
-        if t <= 1e-12:
-            break
-        x += min(t, 1.0) * d
+        active.append(j)
+        weights = np.append(weights, 0.0)
+        while True:                        # minor cycle: the affine min-norm point
+            basis = points[active]
+            n = len(active)
+            kkt = np.zeros((n + 1, n + 1))
+            kkt[:n, :n] = basis @ basis.T
+            kkt[:n, n] = kkt[n, :n] = 1.0
+            rhs = np.zeros(n + 1)
+            rhs[n] = 1.0
+            try:
+                alpha = np.linalg.solve(kkt, rhs)[:n]
+            except np.linalg.LinAlgError:  # affinely dependent points
+                alpha = np.linalg.lstsq(kkt, rhs, rcond=None)[0][:n]
+            if np.all(alpha > 1e-12):
+                weights = alpha
+                break
+            low = alpha <= 1e-12
+            step = float(np.min(weights[low] / (weights[low] - alpha[low])))
+            weights = weights + step * (alpha - weights)
+            keep = weights > 1e-12
+            active = [a for a, k in zip(active, keep) if k]
+            weights = weights[keep]
+        x = weights @ points[active]
     return x
 
 
@@ -378,12 +395,11 @@ class _Climb:
         try:
             for scale in PROBE_SCALES:
                 length = scale * self.finest
-                hopeless = np.zeros(len(directions), dtype=bool)
-                if scale <= MODEL_PROBE_SCALE:
-                    # the near-active patches bound the travel after the probe by
-                    # tol + length * model (plus curvature); where that is short of the lift
-                    # by more than a resolution, the probe cannot gain: no query needed
-                    hopeless = length * model < lift - self.tol - s.params.resolution_m
+                # the near-active patches bound the travel after the probe by
+                # tol + length * model (plus curvature); where that is short of the lift by
+                # a wide margin, the probe cannot gain: no query needed
+                margin = HOPELESS_RESOLUTIONS[scale] * s.params.resolution_m
+                hopeless = length * model < lift - self.tol - margin
                 for d in directions[order[~hopeless[order]]]:
                     if s.params.envelope_holds and \
                             self._limit_to_envelope(d, length) < length:

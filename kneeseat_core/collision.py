@@ -47,10 +47,7 @@ class RigidBody:
         """Build the BVH and the per-triangle centres and normals of `mesh`."""
         vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(faces), len(vertices))   # (triangles, vertices)
-        bvh.addSubModel(vertices, faces)
-        bvh.endModel()
+        bvh = _bvh(vertices, faces)
         normals = np.asarray(mesh.vertex_normals)[faces].mean(axis=1)
         lengths = np.linalg.norm(normals, axis=1, keepdims=True)
         # A triangle whose vertex normals cancel (a knife edge) keeps its face normal.
@@ -69,6 +66,14 @@ class RigidBody:
                    vertices, centroid, centre, radius, reach, faces,
                    np.asarray(mesh.vertex_normals, dtype=np.float64),
                    (indptr, np.ascontiguousarray(both[order, 1])))
+
+
+def _bvh(vertices: Floats, faces: np.ndarray) -> fcl.BVHModel:
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(faces), len(vertices))   # (triangles, vertices)
+    bvh.addSubModel(vertices, faces)
+    bvh.endModel()
+    return bvh
 
 
 @dataclass(slots=True, eq=False)

@@ -14,8 +14,6 @@ import time
 from typing import Callable, Literal
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from .collision import CollisionPair, RigidBody
 from .errors import SettleError
@@ -408,10 +406,20 @@ def _components(body: RigidBody, ids: np.ndarray) -> np.ndarray:
     cols = np.searchsorted(unique, indices[flat])
     cols = np.minimum(cols, len(unique) - 1)
     keep = unique[cols] == indices[flat]
-    graph = coo_matrix((np.ones(int(keep.sum())), (rows[keep], cols[keep])),
-                       shape=(len(unique), len(unique)))
-    _, labels = connected_components(graph, directed=False)
-    return labels[inverse]
+    rows, cols = rows[keep], cols[keep]
+    # label propagation: every triangle takes the smallest label among its neighbours
+    # until nothing changes (a few rounds: contact patches are small)
+    labels = np.arange(len(unique))
+    while True:
+        smaller = np.minimum(labels[rows], labels[cols])
+        updated = labels.copy()
+        np.minimum.at(updated, rows, smaller)
+        np.minimum.at(updated, cols, smaller)
+        updated = updated[updated]
+        if np.array_equal(updated, labels):
+            break
+        labels = updated
+    return np.unique(labels, return_inverse=True)[1][inverse]
 
 
 def _split(points: Floats, normals: Floats, depth: int = 0) -> list[tuple[Floats, Floats]]:
