@@ -117,7 +117,7 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
                   'status': np.asarray(result.status).tolist()},
         'continuity': continuity(result.position_m, result.orientation_xyzw, result.converged,
                                  config.flexion_rad, config.varus_rad,
-                                 [b.name for b in config.bodies]),
+                                 [b.name for b in config.bodies], config.attitudes()),
         'backed_out': _backed_out(config, result),
     }
     return PoseTable(config.flexion_rad, config.varus_rad, result.position_m,

@@ -2,10 +2,12 @@
 
 A step is the difference between the poses of two cells adjacent along flexion or along
 varus: the distance between the body's frame origins (m) and the angle between the two
-orientations (rad). A pair over the bound (1 mm or 2 degrees) whose two cells are both at
-rest is a *branch change* - the rest the settle proved on one side is not the one on the
-other - and is recorded in the table's metadata, never passed over silently; a pair with a
-cell that did not converge is a jump at a failure, reported with the failures.
+orientations (rad) once each cell's commanded attitude is taken out (what the settle
+turned, not the commanded 1 degree step; without the attitudes, the whole angle). A pair
+over the bound (1 mm or 2 degrees) whose two cells are both at rest is a *branch change* -
+the rest the settle proved on one side is not the one on the other - and is recorded in
+the table's metadata, never passed over silently; a pair with a cell that did not
+converge is a jump at a failure, reported with the failures.
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .geometry import matrix_from_quat, quat_from_matrix
 from .typed import Floats
 
 __all__ = ['BOUND_M', 'BOUND_RAD', 'neighbour_steps', 'continuity']
@@ -22,19 +25,24 @@ BOUND_M = 1e-3
 BOUND_RAD = math.radians(2.0)
 
 
-def neighbour_steps(position_m: Floats, orientation_xyzw: Floats
-                    ) -> dict[str, tuple[Floats, Floats]]:
+def neighbour_steps(position_m: Floats, orientation_xyzw: Floats,
+                    attitudes: Floats | None = None) -> dict[str, tuple[Floats, Floats]]:
     """Steps between adjacent cells, per axis.
 
     Args:
         position_m: (B, F, V, 3).
         orientation_xyzw: (B, F, V, 4) unit quaternions.
+        attitudes: (B, F, V, 3, 3) each cell's commanded attitude, taken out of the
+            rotation step (None: the whole angle between the orientations).
     Returns:
         {'flexion': (position (B, F-1, V) m, rotation (B, F-1, V) rad),
          'varus': (position (B, F, V-1), rotation (B, F, V-1))}.
     """
     p = np.asarray(position_m, dtype=np.float64)
     q = np.asarray(orientation_xyzw, dtype=np.float64)
+    if attitudes is not None:        # the settled part: attitude^T @ orientation
+        rot = np.swapaxes(np.asarray(attitudes), -1, -2) @ matrix_from_quat(q)
+        q = quat_from_matrix(rot)
     out = {}
     for name, axis in (('flexion', 1), ('varus', 2)):
         dp = np.linalg.norm(np.diff(p, axis=axis), axis=-1)
@@ -47,8 +55,10 @@ def neighbour_steps(position_m: Floats, orientation_xyzw: Floats
 
 def continuity(position_m: Floats, orientation_xyzw: Floats, converged: Floats,
                flexion_rad: Floats, varus_rad: Floats, bodies: Sequence[str],
-               bound_m: float = BOUND_M, bound_rad: float = BOUND_RAD) -> dict[str, Any]:
-    """The continuity summary stored in a table's metadata (JSON-ready).
+               attitudes: Floats | None = None, bound_m: float = BOUND_M,
+               bound_rad: float = BOUND_RAD) -> dict[str, Any]:
+    """The continuity summary stored in a table's metadata (JSON-ready); `attitudes` as
+    for `neighbour_steps`.
 
     Returns:
         {'bound_mm', 'bound_deg', 'bodies': {name: {'max_position_mm': {value, between},
@@ -64,7 +74,7 @@ def continuity(position_m: Floats, orientation_xyzw: Floats, converged: Floats,
 
     summary: dict[str, Any] = {'bound_mm': bound_m * 1e3, 'bound_deg': math.degrees(bound_rad),
                                'bodies': {}, 'branch_changes': []}
-    steps = neighbour_steps(position_m, orientation_xyzw)
+    steps = neighbour_steps(position_m, orientation_xyzw, attitudes)
     offsets = {'flexion': (1, 0), 'varus': (0, 1)}
     for b, name in enumerate(bodies):
         entry: dict[str, Any] = {'pairs_over_bound': {}}

@@ -99,6 +99,11 @@ class KneeConfig:
         return (rotation_about(self.axes.flexion, body.flexion_fraction * flexion_rad)
                 @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
 
+    def attitudes(self) -> Floats:
+        """(B, F, V, 3, 3) every body's attitude at every grid cell."""
+        return np.array([[[self.attitude(body, f, v) for v in self.varus_rad]
+                          for f in self.flexion_rad] for body in self.bodies])
+
     def push_turn(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3, 3) rotation that turns `body`'s neutral push and locked slide at a cell.
 

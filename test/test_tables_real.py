@@ -146,7 +146,7 @@ def test_tka_branch_changes_are_recorded(built: tuple[KneeConfig, PoseTable]) ->
     metadata's branch changes (nothing passed over silently)."""
     config, table = built
     summary = continuity(table.position_m, table.orientation_xyzw, table.converged,
-                         table.flexion_rad, table.varus_rad, table.bodies)
+                         table.flexion_rad, table.varus_rad, table.bodies, config.attitudes())
     recorded = table.metadata['continuity']
     assert recorded['branch_changes'] == summary['branch_changes']
     print(f'TKA continuity: {recorded["bodies"]}; {len(recorded["branch_changes"])} branch '
