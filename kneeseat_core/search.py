@@ -18,7 +18,7 @@ import numpy as np
 from .collision import CollisionPair, RigidBody
 from .errors import SettleError
 from .geometry import rotation_about, unit
-from .status import Status
+from .status import AT_REST, Status
 from .typed import Floats, Pose
 
 __all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'Search', 'Bracket',
@@ -362,7 +362,7 @@ class Search:
     def result(self, pose: Pose, status: int, reason: str, contacts: Contacts,
                proof_checks: int = 0, proof_s: float = 0.0) -> SettleResult:
         """Package the end of a settle (`status`: a `Status` code)."""
-        return SettleResult(pose, status in (Status.REST, Status.CONSTRAINED), reason,
+        return SettleResult(pose, status in AT_REST, reason,
                             self.iterations, self.pair.checks, contacts,
                             time.perf_counter() - self.started, self.pair.fcl_s,
                             self.backed_out_m, status, proof_checks, proof_s)

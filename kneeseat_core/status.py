@@ -1,7 +1,7 @@
 """How a settle ended: the codes a table stores per cell (part of the file format)."""
 from __future__ import annotations
 
-__all__ = ['Status', 'STATUS_NAMES']
+__all__ = ['Status', 'STATUS_NAMES', 'AT_REST']
 
 
 class Status:
@@ -21,3 +21,6 @@ STATUS_NAMES = {Status.REST: 'rest', Status.CONSTRAINED: 'rest on the envelope b
                 Status.ENVELOPE: 'left the search envelope', Status.LOST: 'lost contact',
                 Status.CAP: 'iteration cap', Status.WEDGED: 'wedged (patent)',
                 Status.FAILED: 'failed to settle', Status.UNKNOWN: 'not converged'}
+
+# the codes of a converged cell: the table claims it is at rest
+AT_REST = (Status.REST, Status.CONSTRAINED)

@@ -21,13 +21,13 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from .errors import TableError
+from .errors import MeshError, TableError
 from .geometry import matrix_from_quat, pose_from
 from .knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
-from .meshes import load_mesh
+from .meshes import check_mesh_files, load_mesh
 from .referee import Envelope, Referee, Verdict
 from .search import SettleParams
-from .status import Status, STATUS_NAMES
+from .status import AT_REST, STATUS_NAMES
 from .sweep import carried
 from .table import PoseTable, read_table
 from .typed import Pose
@@ -53,7 +53,7 @@ class CellVerdict:
     @property
     def converged(self) -> bool:
         """The table claims this cell is at rest."""
-        return self.status in (Status.REST, Status.CONSTRAINED)
+        return self.status in AT_REST
 
     def line(self, resolution_m: float) -> str:
         """One human line."""
@@ -85,23 +85,26 @@ def _varus_free(meta: dict[str, Any], body: int) -> bool:
 
 def sample_cells(table: PoseTable, count: int | None, seed: int = 20261201
                  ) -> list[tuple[int, int, int]]:
-    """Cells (body, flexion index, varus index) to verify.
+    """Cells (body, flexion index, varus index) to verify: the cells the table claims at
+    rest (a cell that did not converge claims nothing; `kneeseat info` reports it).
 
     A body that ignores varus (copied across varus) is sampled on its centre column only.
-    With `count`, every body's four corners come first, then a seeded shuffle of the other
-    cells, taken in turn from each body, up to `count` cells in all.
+    With `count`, every body's four corners come first (those at rest), then a seeded
+    shuffle of its other cells at rest, taken in turn from each body, up to `count` cells.
     """
     nb, nf, nv = np.shape(table.converged)
     v0 = int(np.argmin(np.abs(table.varus_rad)))
+    claimed = np.isin(table.status, AT_REST)
     per_body = []
     for b in range(nb):
         columns = [v0] if _varus_free(table.metadata, b) else list(range(nv))
-        cells = [(b, i, j) for i in range(nf) for j in columns]
+        cells = [(b, i, j) for i in range(nf) for j in columns if claimed[b, i, j]]
         if count is None:
             per_body.append(cells)
             continue
-        corners = list(dict.fromkeys((b, i, j) for i in (0, nf - 1)
-                                     for j in (columns[0], columns[-1])))
+        corners = [c for c in dict.fromkeys((b, i, j) for i in (0, nf - 1)
+                                            for j in (columns[0], columns[-1]))
+                   if claimed[c]]
         rest = [c for c in cells if c not in corners]
         rng = np.random.default_rng(seed + b)
         per_body.append(corners + [rest[k] for k in rng.permutation(len(rest))])
@@ -132,7 +135,8 @@ def _mesh_file(path: Path, mesh_dir: str | None) -> str:
 
 
 def _meshes(spec: BodySpec, units: Any, mesh_dir: str | None) -> list[Any]:
-    return [load_mesh(_mesh_file(p, mesh_dir), units) for p in spec.meshes]
+    """A body's collision meshes, loaded quietly (the parent validated them once)."""
+    return [load_mesh(_mesh_file(p, mesh_dir), units, quiet=True) for p in spec.meshes]
 
 
 def _cell_problem(config: KneeConfig, meta: dict[str, Any], body: int, flexion: float,
@@ -212,6 +216,16 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
     if args.sample is not None and args.sample < 1:
         raise TableError(f'--sample {args.sample}: give a positive number of cells')
     table = read_table(args.table)
+    config = config_from_metadata(table.metadata)
+    mesh_dir = None if args.mesh_dir is None else str(args.mesh_dir)
+    paths = [_mesh_file(p, mesh_dir) for spec in (config.reference, *config.bodies)
+             for p in spec.meshes]
+    missing = [p for p in paths if not Path(p).is_file()]
+    if missing:
+        raise MeshError(f'{missing[0]}: the table\'s mesh is not there; pass --mesh-dir DIR, '
+                        f'the folder that holds {Path(missing[0]).name} and the table\'s other '
+                        f'meshes')
+    check_mesh_files(paths, config.units)     # warnings once, here; workers load quietly
     cells = sample_cells(table, args.sample, args.seed)
     resolution = float(table.metadata.get('settle', {}).get('resolution_m', 1e-4))
     executor, close = executor_for(args.workers, None)
@@ -225,18 +239,20 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
         close()
     verdicts.sort(key=lambda v: (v.body, -v.flexion_deg, v.varus_deg))
     bad = [v for v in verdicts if v.converged and v.gain_m > resolution]
+    unclaimed = int(np.size(table.status) - np.isin(table.status, AT_REST).sum())
     if args.json:
         print(json.dumps({'table': str(args.table), 'resolution_m': resolution,
                           'cells': [v.as_json() for v in verdicts],
-                          'not_at_rest': len(bad)}))
+                          'not_at_rest': len(bad), 'not_converged': unclaimed}))
     else:
         for v in verdicts:
             print(v.line(resolution))
-        judged = [v for v in verdicts if v.converged]
-        worst = max((v.gain_m for v in judged), default=0.0)
-        print(f'{len(verdicts)} cells, {len(judged)} claimed at rest: {len(bad)} gain more than '
-              f'the resolution ({resolution * 1e3:g} mm); largest gain {worst * 1e3:.3f} mm; '
-              f'{len(verdicts) - len(judged)} not converged (not judged)')
+        worst = max((v.gain_m for v in verdicts), default=0.0)
+        unjudged = (f'; {unclaimed} cells of the table did not converge and claim no rest '
+                    f'(kneeseat info lists them)' if unclaimed else '')
+        print(f'{len(verdicts)} cells claimed at rest judged: {len(bad)} gain more than the '
+              f'resolution ({resolution * 1e3:g} mm); largest gain {worst * 1e3:.3f} mm'
+              f'{unjudged}')
     return EXIT_NOT_AT_REST if bad else EXIT_AT_REST
 
 

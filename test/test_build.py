@@ -134,3 +134,36 @@ def test_real_table_refuses_other_meshes(built: tuple[Path, Path], tmp_path: Pat
     with pytest.raises(TableError, match=r"built from other meshes: 'tibia' mesh .*rebuild"):
         read_table(table_path, meshes={'tibia': other})
     read_table(table_path, meshes={'tibia': mesh_dir / 'tibia.stl'})   # the right one
+
+
+def test_verify_judges_only_the_cells_claimed_at_rest(built: tuple[Path, Path], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A cell that did not converge claims nothing: verify counts it and does not judge it."""
+    from dataclasses import replace
+
+    from kneeseat_core.status import Status
+    from kneeseat_core.table import with_hash, write_table
+    table = read_table(built[0])
+    converged = np.array(table.converged, dtype=bool)
+    codes = np.array(table.status)
+    converged[0] = False                          # every tibial cell: left the envelope
+    codes[0] = Status.ENVELOPE
+    meta = dict(table.metadata, cells=dict(table.metadata['cells'], status=codes.tolist()))
+    path = tmp_path / 'failed_tibia.npz'
+    write_table(path, with_hash(replace(table, converged=converged, metadata=meta)))
+    capsys.readouterr()
+    assert main(['verify', str(path), '--sample', '6', '--workers', '1', '--quiet',
+                 '--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report['not_converged'] == 12 and report['not_at_rest'] == 0
+    assert report['cells'] and {c['body'] for c in report['cells']} == {'patella'}
+    assert all(c['converged'] for c in report['cells'])
+
+
+def test_verify_says_where_the_meshes_went(built: tuple[Path, Path], tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['verify', str(built[0]), '--mesh-dir', str(tmp_path), '--quiet']) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
+    assert "femur.stl: the table's mesh is not there; pass --mesh-dir DIR" in lines[0]
