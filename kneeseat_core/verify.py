@@ -222,8 +222,8 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
              for p in spec.meshes]
     missing = [p for p in paths if not Path(p).is_file()]
     if missing:
-        raise MeshError(f'{missing[0]}: the table\'s mesh is not there; pass --mesh-dir DIR, '
-                        f'the folder that holds {Path(missing[0]).name} and the table\'s other '
+        raise MeshError(f"{missing[0]}: the table's mesh is not there; pass --mesh-dir DIR, "
+                        f"the folder that holds {Path(missing[0]).name} and the table's other "
                         f'meshes')
     check_mesh_files(paths, config.units)     # warnings once, here; workers load quietly
     cells = sample_cells(table, args.sample, args.seed)

@@ -26,7 +26,7 @@ from kneeseat_core.cli import main
 from kneeseat_core.continuity import continuity
 from kneeseat_core.geometry import matrix_from_quat, pose_from
 from kneeseat_core.knee import KneeConfig, load_config
-from kneeseat_core.status import Status
+from kneeseat_core.status import AT_REST, Status
 from kneeseat_core.table import PoseTable, read_table, status_map
 from kneeseat_core.typed import Floats, Pose
 
@@ -134,9 +134,19 @@ def test_tka_sampled_cells_are_at_rest(built: tuple[KneeConfig, PoseTable],
     gains = [c['gain_m'] for c in report['cells'] if c['converged']]
     print(f'verify --sample 60: {len(gains)} converged cells judged, largest gain '
           f'{max(gains) * 1e3:.3f} mm; {report["not_at_rest"]} not at rest')
-    corners = {(c['flexion_deg'], c['varus_deg']) for c in report['cells']
-               if c['body'] == 'tibia'}
-    assert {(0.0, -10.0), (0.0, 10.0), (-90.0, -10.0), (-90.0, 10.0)} <= corners
+    config, table = built
+    judged = {(c['flexion_deg'], c['varus_deg']) for c in report['cells']
+              if c['body'] == 'tibia'}
+    nf, nv = len(table.flexion_rad), len(table.varus_rad)
+    corners_at_rest = {(round(math.degrees(table.flexion_rad[i]), 6),
+                        round(math.degrees(table.varus_rad[j]), 6))
+                       for i in (0, nf - 1) for j in (0, nv - 1)
+                       if table.status[0, i, j] in AT_REST}
+    # the tibia's corners claimed at rest lead the sample; one that left the envelope
+    # (extension at varus -10) claims nothing and is not judged
+    assert corners_at_rest and corners_at_rest <= {(round(f, 6), round(v, 6)) for f, v in judged}
+    assert report['not_converged'] == int(np.size(table.status)
+                                          - np.isin(table.status, AT_REST).sum())
     assert code == 0 and report['not_at_rest'] == 0
     assert all(g is not None and g <= RESOLUTION_M for g in gains)
 
