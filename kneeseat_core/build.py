@@ -19,11 +19,12 @@ from tqdm import tqdm
 
 from .continuity import continuity
 from .errors import ConfigError
+from .files import file_sha256, write_bytes
 from .geometry import quat_from_matrix
 from .knee import grid_values, KneeConfig, load_config
 from .status import STATUS_NAMES
 from .sweep import default_workers, process_executor, sweep, SweepResult
-from .table import file_sha256, PoseTable, write_table
+from .table import PoseTable, write_table
 
 __all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
            'make_table', 'register_commands', 'executor_for',
@@ -51,9 +52,7 @@ def materialise_default_knee(out_dir: Path | None = None) -> Path:
     config = out_dir / DEFAULT_CONFIG
     text = resources.files('kneeseat_core').joinpath('data', DEFAULT_CONFIG).read_text()
     if not config.is_file() or config.read_text() != text:
-        tmp = config.with_suffix('.yaml.tmp')
-        tmp.write_text(text)
-        os.replace(tmp, config)
+        write_bytes(config, text.encode())
     return config
 
 

@@ -35,12 +35,13 @@ from typing import Any, Callable
 from distributed import Client, KilledWorker
 from distributed.diagnostics.plugin import WorkerPlugin
 
+from . import kneeseat_version
 from .errors import ConfigError, KneeseatError, MeshError
+from .files import file_sha256, write_bytes
 from .sweep import ChainJob, register_mesh_copy, scene_builds, SceneSpec
-from .table import file_sha256
 
 __all__ = ['DaskExecutor', 'MeshShipment', 'dask_executor', 'worker_stats',
-           'kneeseat_version', 'CONNECT_TIMEOUT_S', 'WORKERS_TIMEOUT_S', 'RETRIES']
+           'CONNECT_TIMEOUT_S', 'WORKERS_TIMEOUT_S', 'RETRIES']
 
 log = logging.getLogger(__name__)
 
@@ -54,15 +55,6 @@ _MESH_DIR = 'kneeseat-meshes'
 # Worker-side counters (read with `client.run(worker_stats)`).
 _RECEIVED: dict[str, int] = {'meshes': 0, 'bytes': 0, 'written': 0}
 _CHAIN_KEYS: set[str] = set()
-
-
-def kneeseat_version() -> str:
-    """The installed kneeseat version ('unknown' when not installed as a distribution)."""
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        return version('kneeseat_ros')
-    except PackageNotFoundError:
-        return 'unknown'
 
 
 def worker_stats() -> dict[str, int]:
@@ -103,9 +95,7 @@ class MeshShipment(WorkerPlugin):
             _RECEIVED['bytes'] += len(data)
             path = folder / f'{sha}{suffix}'
             if not (path.is_file() and path.stat().st_size == len(data)):
-                tmp = folder / f'.{sha}.{os.getpid()}.tmp'
-                tmp.write_bytes(data)
-                os.replace(tmp, path)
+                write_bytes(path, data)
                 _RECEIVED['written'] += 1
             register_mesh_copy(sha, str(path))
 

@@ -54,6 +54,7 @@ import numpy as np
 import trimesh
 
 from .errors import ConfigError, MeshError, TableError
+from .files import file_sha256, write_bytes
 from .geometry import matrix_from_quat, unit
 from .table import PoseTable
 from .typed import Floats, Vec3
@@ -149,7 +150,7 @@ def table_landmarks(table: PoseTable, *, tibia: str | None = 'tibia',
         TableError: a recorded mesh no longer has the SHA-256 the table was built with.
     """
     from .meshes import load_mesh
-    from .table import file_sha256, mesh_entries
+    from .table import mesh_entries
     entries = {b['name']: b for b in table.metadata['bodies']}
     units = (table.metadata.get('config') or {}).get('units', 'm')
 
@@ -326,10 +327,8 @@ def write_text(out: Path, text: str) -> Path:
     Raises:
         TableError: the file cannot be written (nothing is left behind).
     """
-    from .table import _atomic_write
-    data = text.encode()
     try:
-        _atomic_write(Path(out), lambda fh: fh.write(data))
+        write_bytes(Path(out), text.encode())
     except OSError as err:
         raise TableError(f'cannot write {out}: {err.strerror or err}; check that the '
                          'directory exists and is writable') from err

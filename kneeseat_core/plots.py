@@ -2,7 +2,7 @@
 
 Two public functions, both headless (a `matplotlib.figure.Figure` of their own drawn on an
 Agg canvas; no pyplot, so no global state leaks between calls), both writing one PNG
-atomically (temp file in the target directory, then `os.replace`):
+atomically (`kneeseat_core.files.atomic_write`):
 
 - `plot_table`: per moving body, the three translations (mm, reference frame) and the
   rotation about the long axis (deg) against flexion (deg), one curve per chosen varus
@@ -24,11 +24,9 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 import logging
 import math
-import os
 from pathlib import Path
-import tempfile
 import time
-from typing import Literal
+from typing import BinaryIO, Literal
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
@@ -39,6 +37,7 @@ import numpy as np
 import trimesh
 
 from .errors import ConfigError
+from .files import atomic_write
 from .geometry import matrix_from_quat, TOL, unit
 from .status import Status, STATUS_NAMES
 from .table import PoseTable
@@ -333,30 +332,22 @@ def _checked_out(out: Path) -> Path:
 
 
 def write_png(fig: Figure, out: Path, text: dict[str, str] | None = None) -> Path:
-    """Save `fig` to `out` atomically (temp file in the same directory, then rename).
+    """Save `fig` to `out` atomically (`kneeseat_core.files.atomic_write`).
 
     Raises:
         ConfigError: the directory cannot be created or the file cannot be written.
     """
-    tmp: str | None = None
+    def save(stream: BinaryIO) -> None:
+        fig.savefig(stream, format='png', dpi=DPI,
+                    metadata={'Software': 'kneeseat', **(text or {})})
+
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f'.{out.name}.', suffix='.tmp', dir=out.parent)
-        with os.fdopen(fd, 'wb') as stream:
-            fig.savefig(stream, format='png', dpi=DPI,
-                        metadata={'Software': 'kneeseat', **(text or {})})
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out)
-        tmp = None
+        atomic_write(out, save)
     except OSError as err:
         reason = err.strerror or type(err).__name__
         raise ConfigError(f'cannot write picture {str(out)!r}: {reason}; '
                           'choose a writable path ending in .png') from None
-    finally:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
     return out
 
 

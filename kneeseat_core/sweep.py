@@ -52,12 +52,12 @@ import numpy as np
 
 from .collision import RigidBody
 from .errors import NoContactError, SettleError
+from .files import file_sha256
 from .geometry import pose_from, quat_from_matrix
 from .knee import KneeConfig, neutral_pose
 from .meshes import check_mesh_files, load_meshes
 from .settle import settle, SettleParams
 from .status import Status
-from .table import file_sha256
 from .typed import Floats, Pose
 
 __all__ = ['SceneSpec', 'ChainJob', 'ChainResult', 'SweepResult', 'InlineExecutor',

@@ -51,13 +51,12 @@ from __future__ import annotations
 from collections.abc import Callable
 import functools
 import hashlib
-import os
 from pathlib import Path
-import tempfile
 
 import numpy as np
 import trimesh
 
+from .files import file_sha256, write_bytes
 from .typed import Floats
 
 __all__ = ['DEFAULT_PUSH', 'PATELLA_FLEXION_FRACTION', 'default_knee', 'write_default_knee',
@@ -434,8 +433,8 @@ def stl_bytes(mesh: trimesh.Trimesh) -> bytes:
 def write_default_knee(out_dir: Path) -> dict[str, Path]:
     """Write femur.stl, tibia.stl, patella.stl (binary STL, metres) into `out_dir`.
 
-    Each file is written atomically (temporary file in `out_dir`, then rename), so a crash
-    never leaves a half mesh; `out_dir` is created if missing. Idempotent: the same bytes
+    Each file is written atomically (`kneeseat_core.files.atomic_write`), so a crash never
+    leaves a half mesh; `out_dir` is created if missing. Idempotent: the same bytes
     every time (a file that already holds them is left untouched).
 
     Returns:
@@ -448,16 +447,7 @@ def write_default_knee(out_dir: Path) -> dict[str, Path]:
         path = out_dir / f'{name}.stl'
         data = stl_bytes(mesh)
         if not (path.is_file() and _same_file(path, data)):
-            fd, tmp = tempfile.mkstemp(prefix=f'.{name}.', suffix='.stl.tmp', dir=out_dir)
-            try:
-                with os.fdopen(fd, 'wb') as handle:
-                    handle.write(data)
-                    handle.flush()
-                    os.fsync(handle.fileno())
-                os.replace(tmp, path)
-            except BaseException:
-                Path(tmp).unlink(missing_ok=True)
-                raise
+            write_bytes(path, data)
         paths[name] = path
     return paths
 
@@ -466,4 +456,4 @@ def _same_file(path: Path, data: bytes) -> bool:
     """Whether `path` already holds exactly `data` (compared by size, then SHA-256)."""
     if path.stat().st_size != len(data):
         return False
-    return hashlib.sha256(path.read_bytes()).digest() == hashlib.sha256(data).digest()
+    return file_sha256(path) == hashlib.sha256(data).hexdigest()

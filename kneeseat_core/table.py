@@ -24,7 +24,6 @@ for the same query written with numpy (benchmarks/bench_interp.py).
 from __future__ import annotations
 
 from bisect import bisect_right
-import contextlib
 import csv
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
@@ -32,22 +31,22 @@ import hashlib
 import io
 import json
 import math
-import os
 from pathlib import Path
-import secrets
-from typing import Any, BinaryIO, Callable, Literal
+from typing import Any, BinaryIO, Literal
 import zipfile
 import zlib
 
 import numpy as np
 
+from . import kneeseat_version
 from .errors import ConfigError, KneeseatError, MeshError, OutOfRangeError, TableError
+from .files import atomic_write, file_sha256
 from .geometry import KneeAxes, matrix_from_quat, TOL
 from .status import Status, STATUS_NAMES
 from .typed import Floats
 
 __all__ = ['SCHEMA', 'SUPPORTED_SCHEMAS', 'ARRAY_NAMES', 'METADATA_KEYS', 'PoseTable', 'Lookup',
-           'write_table', 'read_table', 'with_hash', 'arrays_sha256', 'file_sha256',
+           'write_table', 'read_table', 'with_hash', 'arrays_sha256',
            'describe', 'status_map', 'lookup_json', 'export_csv', 'CSV_COLUMNS', 'mesh_entries']
 
 SCHEMA = 'kneeseat.table/1'
@@ -322,19 +321,6 @@ def _hash_arrays(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def file_sha256(path: Path) -> str:
-    """SHA-256 (hex) of a file's bytes, read in 1 MiB chunks.
-
-    Raises:
-        OSError: the file cannot be read.
-    """
-    h = hashlib.sha256()
-    with open(path, 'rb') as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b''):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _table_arrays(table: PoseTable) -> dict[str, Any]:
     return {'flexion': table.flexion_rad, 'varus': table.varus_rad,
             'position': table.position_m, 'orientation': table.orientation_xyzw,
@@ -440,14 +426,6 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f'{type(value).__name__} is not JSON serialisable')
 
 
-def _kneeseat_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        return version('kneeseat_ros')
-    except PackageNotFoundError:
-        return 'unknown'
-
-
 def with_hash(table: PoseTable) -> PoseTable:
     """A copy of `table` whose metadata is what `write_table` stores.
 
@@ -462,36 +440,10 @@ def with_hash(table: PoseTable) -> PoseTable:
     where = 'cannot write table'
     _check_metadata(meta, where)
     arrays = _check_arrays(_table_arrays(table), len(meta['bodies']), where)
-    meta.setdefault('kneeseat_version', _kneeseat_version())
+    meta.setdefault('kneeseat_version', kneeseat_version())
     meta.setdefault('built', datetime.now(timezone.utc).isoformat(timespec='seconds'))
     meta['arrays_sha256'] = _hash_arrays(arrays)
     return replace(table, metadata=meta)
-
-
-def _atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
-    """Write via a temp file in the same directory, fsync, then rename over `path`.
-
-    On any failure the temp file is removed and `path` is left as it was.
-    """
-    directory = path.parent
-    tmp = directory / f'.{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp'
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)   # umask applies
-    try:
-        with os.fdopen(fd, 'wb') as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    with contextlib.suppress(OSError):          # make the rename itself durable
-        dfd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
 
 
 def write_table(path: Path, table: PoseTable) -> None:
@@ -520,7 +472,7 @@ def write_table(path: Path, table: PoseTable) -> None:
         np.savez(fh, allow_pickle=False, **arrays)
 
     try:
-        _atomic_write(path, save)
+        atomic_write(path, save)
     except OSError as err:
         raise TableError(f'cannot write table {path}: {err.strerror or err}; check that the '
                          'directory exists, is writable and has free space') from err
@@ -844,7 +796,7 @@ def export_csv(table: PoseTable, path: Path) -> None:
         fh.write(data)
 
     try:
-        _atomic_write(path, save)
+        atomic_write(path, save)
     except OSError as err:
         raise TableError(f'cannot write CSV {path}: {err.strerror or err}; check that the '
                          'directory exists, is writable and has free space') from err

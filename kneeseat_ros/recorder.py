@@ -35,6 +35,7 @@ from rclpy.qos import QoSProfile
 import yaml
 
 from kneeseat_core.errors import KneeseatError
+from kneeseat_core.files import write_bytes
 from .msgdefs import message_definition, MessageTypeError, serialize, type_hash
 
 __all__ = ['RecorderError', 'BagRecorder', 'TopicSpec', 'RecoveryReport', 'qos_to_dicts',
@@ -416,9 +417,8 @@ class BagRecorder:
             'custom_data': {f'kneeseat.{k}': v for k, v in self._kneeseat_meta.items()},
             'ros_distro': 'jazzy',
         }
-        tmp = self._dir / 'metadata.yaml.tmp'
-        tmp.write_text(_yaml({'rosbag2_bagfile_information': info}), encoding='utf-8')
-        tmp.replace(self._dir / 'metadata.yaml')
+        write_bytes(self._dir / 'metadata.yaml',
+                    _yaml({'rosbag2_bagfile_information': info}).encode('utf-8'))
 
 
 # -- reading damaged files and recovery ------------------------------------------------------

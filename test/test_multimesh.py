@@ -24,10 +24,11 @@ import shapes
 from kneeseat_core.build import build_table, materialise_default_knee
 from kneeseat_core.cli import _table_meshes, main
 from kneeseat_core.errors import ConfigError, TableError
+from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import matrix_from_quat, rotation_about
 from kneeseat_core.knee import load_config
 from kneeseat_core.sweep import InlineExecutor
-from kneeseat_core.table import describe, file_sha256, PoseTable, read_table
+from kneeseat_core.table import describe, PoseTable, read_table
 
 MM = 1e-3
 RADIUS, BOWL_R, DEPTH = 8 * MM, 16 * MM, 12 * MM

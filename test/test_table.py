@@ -22,7 +22,8 @@ import pytest
 from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, OutOfRangeError,
                                   TableError)
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_angle
-from kneeseat_core.table import (arrays_sha256, CSV_COLUMNS, describe, export_csv, file_sha256,
+from kneeseat_core.files import file_sha256
+from kneeseat_core.table import (arrays_sha256, CSV_COLUMNS, describe, export_csv,
                                  lookup_json, PoseTable, read_table, SCHEMA, with_hash,
                                  write_table)
 
