@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.serialization import serialize_message
 
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_core.table import read_table, write_table
+    from kneeseat_core.table_io import read_table, write_table
     from kneeseat_ros.cdr import decode_joint_state, encode_joint_state, PoseStampedWriter
     from kneeseat_ros.conversions import (angles_from_joint_state, angles_from_joints,
                                           joint_state, pose_stamped, stamp_from_ns)

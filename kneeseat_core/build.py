@@ -24,7 +24,8 @@ from .geometry import quat_from_matrix
 from .knee import grid_values, KneeConfig, load_config
 from .status import STATUS_NAMES
 from .sweep import default_workers, process_executor, sweep, SweepResult
-from .table import PoseTable, write_table
+from .table import PoseTable
+from .table_io import write_table
 
 __all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
            'make_table', 'register_commands', 'executor_for',

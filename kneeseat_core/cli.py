@@ -165,7 +165,8 @@ def _cmd_settle(args: argparse.Namespace) -> int:
 
 # ---- table commands -------------------------------------------------------------------
 def _cmd_info(args: argparse.Namespace) -> int:
-    from .table import describe, read_table, status_map
+    from .table_io import read_table
+    from .table_report import describe, status_map
     table = read_table(args.table)
     print(describe(table))
     if args.map:
@@ -175,7 +176,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 def _cmd_lookup(args: argparse.Namespace) -> int:
     from .geometry import KneeAxes, matrix_from_quat
-    from .table import lookup_json, read_table
+    from .table_io import read_table
+    from .table_report import lookup_json
     table = read_table(args.table)
     flexion, varus = math.radians(args.flexion_deg), math.radians(args.varus_deg)
     result = table.interpolate(flexion, varus, args.out_of_range)
@@ -196,7 +198,8 @@ def _cmd_lookup(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from .table import export_csv, read_table
+    from .table_io import read_table
+    from .table_report import export_csv
     export_csv(read_table(args.table), args.csv)
     print(f'wrote {args.csv}')
     return EXIT_OK
@@ -207,7 +210,7 @@ def _display_paths(entry: dict[str, Any], display: bool) -> list[str]:
 
     Reads tables written before multi-mesh bodies (`mesh`/`display_mesh` only) too.
     """
-    from .table import mesh_entries
+    from .table_format import mesh_entries
     if display:
         listed = [m['path'] for m in entry.get('display_meshes') or [] if isinstance(m, dict)]
         if listed:
@@ -231,7 +234,7 @@ def _table_meshes(table: Any, display: bool) -> dict[str, Any]:
 
 def _cmd_plot(args: argparse.Namespace) -> int:
     from .plots import plot_convergence_map, plot_table
-    from .table import read_table
+    from .table_io import read_table
     if args.map:
         out = plot_convergence_map(read_table(args.table), args.out)
         print(f'wrote {out}')
@@ -243,7 +246,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
 def _cmd_render(args: argparse.Namespace) -> int:
     from .plots import render_table
-    from .table import read_table
+    from .table_io import read_table
     table = read_table(args.table)
     out = render_table(table, _table_meshes(table, not args.implants), args.out,
                        flexion_deg=args.flexion_deg, view=args.view)
@@ -255,7 +258,7 @@ def _cmd_kinematics(args: argparse.Namespace) -> int:
     from .kinematics import (DEFAULT_ANGLES_DEG, kinematics_markdown, knee_kinematics,
                              plot_kinematics, read_reference, table_landmarks,
                              write_kinematics_csv, write_text)
-    from .table import read_table
+    from .table_io import read_table
     table = read_table(args.table)
     names = dict(tibia=args.tibia, patella=args.patella)
     marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,

@@ -150,7 +150,7 @@ def table_landmarks(table: PoseTable, *, tibia: str | None = 'tibia',
         TableError: a recorded mesh no longer has the SHA-256 the table was built with.
     """
     from .meshes import load_mesh
-    from .table import mesh_entries
+    from .table_format import mesh_entries
     entries = {b['name']: b for b in table.metadata['bodies']}
     units = (table.metadata.get('config') or {}).get('units', 'm')
 

@@ -29,7 +29,8 @@ from .referee import Envelope, Referee, Verdict
 from .search import SettleParams
 from .status import Status, STATUS_NAMES
 from .sweep import carried
-from .table import PoseTable, read_table
+from .table import PoseTable
+from .table_io import read_table
 from .typed import Pose
 
 __all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'register_command']

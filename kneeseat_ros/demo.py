@@ -57,7 +57,8 @@ from kneeseat_core.geometry import matrix_from_quat
 from kneeseat_core.knee import KneeConfig, load_config
 from kneeseat_core.plots import write_png
 from kneeseat_core.sweep import default_workers
-from kneeseat_core.table import PoseTable, read_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
 from kneeseat_core.typed import Floats
 from kneeseat_ros.conversions import stamp_ns
 

@@ -92,7 +92,8 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from kneeseat_core.errors import ConfigError, KneeseatError, OutOfRangeError, TableError
-from kneeseat_core.table import Lookup, PoseTable, read_table
+from kneeseat_core.table import Lookup, PoseTable
+from kneeseat_core.table_io import read_table
 from kneeseat_ros.cdr import (CdrError, decode_joint_state, decode_pose_stamped,
                               encode_joint_state, encode_pose_stamped, PoseStampedWriter,
                               TfWriter)

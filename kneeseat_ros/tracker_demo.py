@@ -40,7 +40,8 @@ import yaml
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_about
 from kneeseat_core.plots import write_png
-from kneeseat_core.table import PoseTable, read_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
 from kneeseat_core.typed import Floats, Poses
 
 __all__ = ['leg_motion', 'example_registration', 'registration_yaml', 'expected_world',

@@ -19,7 +19,7 @@ import pytest
 from kneeseat_core.build import materialise_default_knee
 from kneeseat_core.cli import main
 from kneeseat_core.errors import TableError
-from kneeseat_core.table import read_table
+from kneeseat_core.table_io import read_table
 
 GRID = ('--flexion-grid', '0,-90,30', '--varus-grid', '-10,10,10')
 

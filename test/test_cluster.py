@@ -29,7 +29,8 @@ from kneeseat_core.geometry import pose_from
 from kneeseat_core.knee import KneeConfig, load_config
 from kneeseat_core.sweep import ChainJob, run_chain, SceneSpec, sweep
 from kneeseat_core.files import file_sha256
-from kneeseat_core.table import PoseTable, read_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
 
 FLEXION = '0,-90,10'
 VARUS = '-10,10,5'

@@ -22,7 +22,8 @@ from rosbags.typesys import get_typestore, Stores
 import yaml
 
 from kneeseat_core.geometry import matrix_from_quat
-from kneeseat_core.table import PoseTable, read_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
 from kneeseat_ros.demo import demo_bag, main, PLOT_NAME, PLOT_SIZE_PX, prepare_table
 from kneeseat_ros.replay import load_messages
 

@@ -28,7 +28,9 @@ from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import matrix_from_quat, rotation_about
 from kneeseat_core.knee import load_config
 from kneeseat_core.sweep import InlineExecutor
-from kneeseat_core.table import describe, PoseTable, read_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
+from kneeseat_core.table_report import describe
 
 MM = 1e-3
 RADIUS, BOWL_R, DEPTH = 8 * MM, 16 * MM, 12 * MM
