@@ -16,7 +16,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .errors import KneeseatError, NoContactError
+from .errors import KneeseatError, NoContactError, UsageError
 
 __all__ = ['main', 'build_parser', 'load_start_pose']
 
@@ -30,10 +30,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(EXIT_BAD_INPUT, f'{self.prog}: error: {message}; see --help\n')
-
-
-class _UsageError(KneeseatError):
-    """A command-line value that cannot be parsed."""
 
 
 def _vector3(text: str) -> tuple[float, float, float]:
@@ -87,7 +83,7 @@ def load_start_pose(path: Path | None, data: Any = None) -> np.ndarray:
     from `data`, that file's content already parsed); identity without a path.
 
     Raises:
-        KneeseatError: the file is missing or is not such a pose (one-line message).
+        UsageError: the file is missing or is not such a pose (one-line message).
     """
     from .geometry import matrix_from_quat, pose_from
     if path is None:
@@ -98,15 +94,15 @@ def load_start_pose(path: Path | None, data: Any = None) -> np.ndarray:
         position = np.asarray(data['position'], dtype=float).reshape(3)
         quat = np.asarray(data['orientation'], dtype=float).reshape(4)
     except FileNotFoundError:
-        raise _UsageError(f'{path}: no such start file') from None
+        raise UsageError(f'{path}: no such start file') from None
     except (OSError, ValueError, KeyError, TypeError) as err:
-        raise _UsageError(f'{path}: not a start pose ({type(err).__name__}); expected '
-                          '{"position":[x,y,z],"orientation":[x,y,z,w]}') from None
+        raise UsageError(f'{path}: not a start pose ({type(err).__name__}); expected '
+                         '{"position":[x,y,z],"orientation":[x,y,z,w]}') from None
     if not (np.all(np.isfinite(position)) and np.all(np.isfinite(quat))):
-        raise _UsageError(f'{path}: start pose has non-finite numbers')
+        raise UsageError(f'{path}: start pose has non-finite numbers')
     if abs(float(np.linalg.norm(quat)) - 1.0) > 1e-3:
-        raise _UsageError(f'{path}: orientation {quat.tolist()} is not a unit quaternion '
-                          '[x,y,z,w]')
+        raise UsageError(f'{path}: orientation {quat.tolist()} is not a unit quaternion '
+                         '[x,y,z,w]')
     return pose_from(matrix_from_quat(quat), position)
 
 

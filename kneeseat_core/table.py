@@ -27,7 +27,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .errors import ConfigError, KneeseatError, OutOfRangeError
+from .errors import ConfigError, NonFiniteError, OutOfRangeError
 from .geometry import KneeAxes, TOL
 from .status import Status
 from .table_format import check_arrays, hash_arrays
@@ -198,7 +198,7 @@ class PoseTable:
             The poses (B, 3) m and (B, 4) xyzw (w >= 0) in the reference frame, the clamped
             flag and, per body, whether a non-converged node had a non-zero weight.
         Raises:
-            KneeseatError: an angle is NaN or infinite.
+            NonFiniteError: an angle is NaN or infinite.
             ConfigError: `out_of_range` is neither 'clamp' nor 'drop'.
             OutOfRangeError: outside the grid and `out_of_range` is 'drop'.
             TableError: (first call only) the arrays are not a valid table.
@@ -208,8 +208,8 @@ class PoseTable:
             g = _grid_of(self)
         f, v = float(flexion_rad), float(varus_rad)
         if not (math.isfinite(f) and math.isfinite(v)):
-            raise KneeseatError(f'pose table lookup at flexion={f} rad, varus={v} rad: angles '
-                                'must be finite; drop NaN/inf tracker samples before the lookup')
+            raise NonFiniteError(f'pose table lookup at flexion={f} rad, varus={v} rad: angles '
+                                 'must be finite; drop NaN/inf tracker samples before the lookup')
         if out_of_range != 'clamp' and out_of_range != 'drop':
             raise ConfigError(f'out_of_range={out_of_range!r} is not a policy; '
                               "use 'clamp' or 'drop'")

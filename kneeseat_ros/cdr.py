@@ -25,6 +25,8 @@ from collections.abc import Sequence
 import functools
 import struct
 
+from .errors import CdrError
+
 __all__ = ['CdrError', 'CDR_LE', 'decode_pose_stamped', 'decode_joint_state',
            'PoseStampedWriter', 'encode_pose_stamped', 'encode_joint_state', 'TfWriter']
 
@@ -32,10 +34,6 @@ CDR_LE = b'\x00\x01\x00\x00'
 _STAMP = struct.Struct('<iI')
 _U32 = struct.Struct('<I')
 _POSE = struct.Struct('<7d')
-
-
-class CdrError(ValueError):
-    """Bytes that are not a little-endian CDR message of the expected type."""
 
 
 def _string(data: bytes, o: int) -> tuple[str, int]:

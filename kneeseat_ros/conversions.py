@@ -29,9 +29,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
 
-from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, TOL
 from kneeseat_core.typed import Floats, Pose as PoseArray
+from .errors import BadInputError
 
 __all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'BadInputError', 'AttitudeDecoder',
            'stamp_ns', 'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped',
@@ -48,14 +48,6 @@ JOINT_NAMES = ('knee_flexion', 'knee_varus')
 DROP_REASONS = ('nonfinite', 'quaternion', 'frame_id', 'joint_names', 'lengths',
                 'out_of_range', 'unpaired', 'stale', 'malformed')
 UNSTAMPED = 0   # header.stamp of a message nobody stamped (e.g. `ros2 topic pub`'s default)
-
-
-class BadInputError(KneeseatError):
-    """An input message cannot be turned into an attitude; `reason` is in DROP_REASONS."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
 
 
 def stamp_ns(stamp: Time) -> int:

@@ -61,6 +61,7 @@ from kneeseat_core.table import PoseTable
 from kneeseat_core.table_io import read_table
 from kneeseat_core.typed import Floats
 from kneeseat_ros.conversions import stamp_ns
+from kneeseat_ros.errors import DataMissing, DemoError
 
 __all__ = ['DemoError', 'DataMissing', 'KNEES', 'NATURAL_CONFIG', 'DEFAULT_OUT',
            'DEFAULT_STEP_DEG', 'PLOT_NAME', 'PLOT_SIZE_PX',
@@ -88,17 +89,11 @@ STOP_TIMEOUT_S = 20.0                  # SIGINT -> exit of the server
 _SPIN_SLICE_S = 0.05
 
 
-class DemoError(KneeseatError):
-    """A demo phase failed; the message says which one and what to look at."""
-
-
 class _Stop(Exception):
     """SIGTERM reached the demo: unwind (children are stopped in `finally`)."""
 
 
 # ----------------------------------------------------------------------------- phase 1
-class DataMissing(KneeseatError):
-    """The chosen knee's meshes are not where its config says (exit code 2)."""
 
 
 def _demo_config(out_dir: Path, step_deg: float, knee: str = 'default',

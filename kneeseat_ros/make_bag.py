@@ -25,7 +25,8 @@ from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.typed import Floats
 from .conversions import joint_state, pose_stamped, stamp_from_ns
-from .recorder import BagRecorder, RecorderError
+from .errors import RecorderError, TrajectoryError
+from .recorder import BagRecorder
 from .replay import PUBLISHER_QOS
 
 __all__ = ['TrajectoryError', 'AngleTrack', 'sweep', 'gait', 'read_csv', 'parse_axes',
@@ -35,10 +36,6 @@ DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000   # fixed epoch: 2023-11-14T22:
 DEFAULT_AXES = '0,0,1/1,0,0/0,1,0'                  # flexion / varus / long (TKA frame)
 CSV_COLUMNS = ('time_s', 'flexion_deg', 'varus_deg')
 _VECTOR_OPTIONS = ('--axes',)
-
-
-class TrajectoryError(KneeseatError):
-    """An angle CSV or a trajectory request is invalid; the message names the line/option."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)

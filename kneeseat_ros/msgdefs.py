@@ -32,7 +32,7 @@ from typing import Any
 from ament_index_python.packages import get_package_share_directory, PackageNotFoundError
 from rosidl_parser import definition as idl
 
-from kneeseat_core.errors import KneeseatError
+from .errors import MessageTypeError
 
 __all__ = ['MessageTypeError', 'split_type', 'message_class', 'message_definition',
            'type_hash', 'serialize']
@@ -44,10 +44,6 @@ PRIMITIVES = frozenset({
 })
 SEPARATOR = '=' * 80
 _TYPE_RE = re.compile(r'^([A-Za-z][A-Za-z0-9_]*)/(msg)/([A-Za-z][A-Za-z0-9_]*)$')
-
-
-class MessageTypeError(KneeseatError):
-    """A message type name is malformed or its interface package is not installed."""
 
 
 def split_type(msg_type: str) -> tuple[str, str]:

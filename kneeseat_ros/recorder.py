@@ -36,7 +36,8 @@ import yaml
 
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.files import write_bytes
-from .msgdefs import message_definition, MessageTypeError, serialize, type_hash
+from .errors import MessageTypeError, RecorderError
+from .msgdefs import message_definition, serialize, type_hash
 
 __all__ = ['RecorderError', 'BagRecorder', 'TopicSpec', 'RecoveryReport', 'qos_to_dicts',
            'topic_spec',
@@ -52,10 +53,6 @@ CHUNK_SIZE_BYTES = 768 * 1024      # rosbag2's default MCAP chunk size
 MESSAGE_RECORD_OVERHEAD = 31       # opcode, length, channel, sequence, two stamps (bytes)
 DEFAULT_QOS = QoSProfile(depth=10)  # rclpy's default publisher QoS
 _SPLIT_RE = re.compile(r'_(\d+)\.mcap$')
-
-
-class RecorderError(KneeseatError):
-    """A bag directory cannot be created or written, or a topic cannot be recorded."""
 
 
 def _duration_dict(ns: int) -> dict[str, int]:

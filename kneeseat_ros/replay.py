@@ -33,6 +33,7 @@ from rclpy.utilities import remove_ros_args
 import yaml
 
 from kneeseat_core.errors import KneeseatError
+from .errors import BagError
 from .msgdefs import message_class
 
 __all__ = ['BagError', 'BagMessage', 'PUBLISHER_QOS', 'DEFAULT_TOPICS', 'bag_files',
@@ -44,10 +45,6 @@ PUBLISHER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
 DEFAULT_TOPICS = ('/knee/pose', '/knee/joint_states')
 PROGRESS_PERIOD_S = 0.5
 WAIT_SLICE_S = 0.1          # longest uninterrupted wait, so Ctrl-C acts at once
-
-
-class BagError(KneeseatError):
-    """A path is not a readable ros2 MCAP bag, or holds none of the requested topics."""
 
 
 @dataclass(frozen=True, slots=True)

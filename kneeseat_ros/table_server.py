@@ -91,16 +91,17 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from kneeseat_core.errors import ConfigError, KneeseatError, OutOfRangeError, TableError
+from kneeseat_core.errors import (ConfigError, KneeseatError, NonFiniteError, OutOfRangeError,
+                                  TableError)
 from kneeseat_core.table import Lookup, PoseTable
 from kneeseat_core.table_io import read_table
-from kneeseat_ros.cdr import (CdrError, decode_joint_state, decode_pose_stamped,
-                              encode_joint_state, encode_pose_stamped, PoseStampedWriter,
-                              TfWriter)
+from kneeseat_ros.cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state,
+                              encode_pose_stamped, PoseStampedWriter, TfWriter)
 from kneeseat_ros.conversions import (
-    angles_from_joints, angles_from_orientation, AttitudeDecoder, BadInputError,
-    body_markers, diagnostic_status, display_mesh_paths, DROP_REASONS, JOINT_NAMES, quat_xyzw,
+    angles_from_joints, angles_from_orientation, AttitudeDecoder, body_markers,
+    diagnostic_status, display_mesh_paths, DROP_REASONS, JOINT_NAMES, quat_xyzw,
     rigid_from_fields, stamp_from_ns, stamp_ns)
+from kneeseat_ros.errors import BadInputError, CdrError
 from kneeseat_ros.tracker import (compose, load_registration, Pairer, Registration,
                                   relative_rotation, Rigid)
 
@@ -325,7 +326,7 @@ class TableServer(Node):
         Raises:
             ConfigError: a parameter or the registration file is invalid.
             TableError: the table is missing or corrupt.
-            KneeseatError: the session recorder cannot start (recorder.RecorderError).
+            RecorderError: the session recorder cannot start.
         """
         super().__init__('table_server', **kwargs)
         self._log = self.get_logger()
@@ -770,7 +771,7 @@ class TableServer(Node):
         except OutOfRangeError as err:
             self._drop('out_of_range', err)
             return
-        except KneeseatError as err:       # non-finite angles are caught before; belt and braces
+        except NonFiniteError as err:      # non-finite angles are caught before; belt and braces
             self._drop('nonfinite', err)
             return
         positions, orientations = lookup.position_m.tolist(), lookup.orientation_xyzw.tolist()

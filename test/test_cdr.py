@@ -10,10 +10,10 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosidl_parser import definition as idl
 from sensor_msgs.msg import JointState
 
-from kneeseat_ros.cdr import (CdrError, decode_joint_state, decode_pose_stamped,
-                              encode_joint_state, encode_pose_stamped, PoseStampedWriter,
-                              TfWriter)
+from kneeseat_ros.cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state,
+                              encode_pose_stamped, PoseStampedWriter, TfWriter)
 from kneeseat_ros.conversions import pose_stamped, stamp_from_ns
+from kneeseat_ros.errors import CdrError
 from kneeseat_ros.msgdefs import serialize
 
 

@@ -21,9 +21,9 @@ from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
 import yaml
 
+from kneeseat_ros.errors import RecorderError
 from kneeseat_ros.msgdefs import message_definition, SEPARATOR, serialize, type_hash
-from kneeseat_ros.recorder import (BagRecorder, qos_to_dicts, read_readable, recover,
-                                   RecorderError)
+from kneeseat_ros.recorder import BagRecorder, qos_to_dicts, read_readable, recover
 
 T0 = 1_700_000_000_000_000_000
 SHA = 'ab' * 32

@@ -19,8 +19,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, OutOfRangeError,
-                                  TableError)
+from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, NonFiniteError,
+                                  OutOfRangeError, TableError)
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_angle
 from kneeseat_core.files import file_sha256
 from kneeseat_core.table import arrays_sha256, PoseTable
@@ -307,11 +307,12 @@ def test_drop_raises_out_of_range(table: PoseTable) -> None:
 
 @pytest.mark.parametrize('mode', ['clamp', 'drop'])
 @pytest.mark.parametrize('f, v', [(math.nan, 0.0), (-0.5, math.inf), (-math.inf, 0.0)])
-def test_non_finite_angles_raise_the_root_error(table: PoseTable, mode: str, f: float,
-                                                v: float) -> None:
-    with pytest.raises(KneeseatError, match='must be finite') as info:
+def test_non_finite_angles_raise_their_own_error(table: PoseTable, mode: str, f: float,
+                                                 v: float) -> None:
+    with pytest.raises(NonFiniteError, match='must be finite') as info:
         table.interpolate(f, v, mode)  # type: ignore[arg-type]
-    assert type(info.value) is KneeseatError
+    assert isinstance(info.value, KneeseatError)
+    assert not isinstance(info.value, (OutOfRangeError, TableError, ConfigError))
 
 
 def test_nonconverged_cells_are_flagged_only_where_they_weigh() -> None:
