@@ -85,7 +85,7 @@ def load_start_pose(path: Path | None, data: Any = None) -> np.ndarray:
     Raises:
         UsageError: the file is missing or is not such a pose (one-line message).
     """
-    from .geometry import matrix_from_quat, pose_from
+    from .geometry import matrix_from_quat, pose_from, TOL
     if path is None:
         return np.eye(4)
     try:
@@ -100,7 +100,7 @@ def load_start_pose(path: Path | None, data: Any = None) -> np.ndarray:
                          '{"position":[x,y,z],"orientation":[x,y,z,w]}') from None
     if not (np.all(np.isfinite(position)) and np.all(np.isfinite(quat))):
         raise UsageError(f'{path}: start pose has non-finite numbers')
-    if abs(float(np.linalg.norm(quat)) - 1.0) > 1e-3:
+    if abs(float(np.linalg.norm(quat)) - 1.0) > TOL.input_unit_norm:
         raise UsageError(f'{path}: orientation {quat.tolist()} is not a unit quaternion '
                          '[x,y,z,w]')
     return pose_from(matrix_from_quat(quat), position)

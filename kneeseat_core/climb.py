@@ -34,6 +34,7 @@ import time
 
 import numpy as np
 
+from .geometry import TOL
 from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
 from .status import Status
 from .typed import Floats, Pose
@@ -80,7 +81,7 @@ def _min_norm_point(points: Floats) -> Floats:
     x = points[active[0]].copy()
     for _ in range(8 * len(points) + 16):
         j = int(np.argmin(points @ x))
-        if float(x @ x) - float(points[j] @ x) <= 1e-12 * scale or j in active:
+        if float(x @ x) - float(points[j] @ x) <= TOL.hull_weight * scale or j in active:
             break
         active.append(j)
         weights = np.append(weights, 0.0)
@@ -96,13 +97,13 @@ def _min_norm_point(points: Floats) -> Floats:
                 alpha = np.linalg.solve(kkt, rhs)[:n]
             except np.linalg.LinAlgError:  # affinely dependent points
                 alpha = np.linalg.lstsq(kkt, rhs, rcond=None)[0][:n]
-            if np.all(alpha > 1e-12):
+            if np.all(alpha > TOL.hull_weight):
                 weights = alpha
                 break
-            low = alpha <= 1e-12
+            low = alpha <= TOL.hull_weight
             step = float(np.min(weights[low] / (weights[low] - alpha[low])))
             weights = weights + step * (alpha - weights)
-            keep = weights > 1e-12
+            keep = weights > TOL.hull_weight
             active = [a for a, k in zip(active, keep) if k]
             weights = weights[keep]
         x = weights @ points[active]

@@ -17,6 +17,7 @@ import fcl
 import numpy as np
 import trimesh
 
+from .geometry import TOL
 from .typed import Floats, Pose
 
 __all__ = ['RigidBody', 'CollisionPair']
@@ -51,7 +52,7 @@ class RigidBody:
         normals = np.asarray(mesh.vertex_normals)[faces].mean(axis=1)
         lengths = np.linalg.norm(normals, axis=1, keepdims=True)
         # A triangle whose vertex normals cancel (a knife edge) keeps its face normal.
-        flat = lengths[:, 0] < 1e-9
+        flat = lengths[:, 0] < TOL.normal_length
         normals[flat] = np.asarray(mesh.face_normals)[flat]
         lengths[flat] = 1.0
         centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))

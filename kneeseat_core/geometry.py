@@ -24,12 +24,49 @@ __all__ = ['Tolerances', 'TOL', 'unit', 'rotation_about', 'pose_from', 'rotation
 
 @dataclass(frozen=True, slots=True)
 class Tolerances:
-    """Every numeric tolerance of the project, in one place."""
+    """Every numeric tolerance of the project, in one place (`TOL`).
 
-    zero_length: float = 1e-12     # below this a vector has no direction
-    unit_norm: float = 1e-6        # |1 - |q|| accepted as a unit quaternion / axis
-    orthogonal: float = 1e-3       # |cos| accepted between axes declared orthogonal
-    torque: float = 1e-12          # |torque| (m) below this counts as zero (no sign)
+    Geometry and arithmetic:
+        zero_length: below this a vector (or a sum of weights) has no direction.
+        unit_norm: |1 - |q|| accepted as a unit quaternion or axis in a table or a config.
+        orthogonal: |cos| accepted between axes declared orthogonal.
+        torque: |torque| (m) below this counts as zero (no sign), patent method.
+        degenerate: |Gram determinant| (m^4) below this: a triangle has no area.
+        normal_length: a sum of unit vertex normals shorter than this cancels (a knife
+            edge), and the face normal stands in for it.
+        hull_weight: Wolfe's minimum-norm point: weights and the optimality gap (relative
+            to the largest squared norm) below this count as zero.
+        fraction: a body's attitude fraction within this of 0 ignores that angle.
+    Inputs from outside:
+        input_unit_norm: |1 - |q|| accepted (then normalised) from a tracker or a START.json:
+            float32 data, often renormalised after filtering.
+        registration: |R^T R - I| and |1 - |q|| accepted in a tracker registration file
+            (written with 6 to 9 digits; a scale error of 1e-6 is 0.2 um at 0.2 m).
+    Grids (angles in degrees):
+        grid_step: a grid's step must divide its range to within this many steps.
+        demo_step: the demo's grid step must divide 10 deg to within this many steps.
+        grid_match_deg: an angle this close to a grid node is that node.
+        grid_range_deg: an angle this far outside a grid's range is still inside it.
+        grid_uniform: relative and absolute difference of steps that count as equal.
+        grid_same_rad: two grids whose values differ by less than this are the same grid.
+    """
+
+    zero_length: float = 1e-12
+    unit_norm: float = 1e-6
+    orthogonal: float = 1e-3
+    torque: float = 1e-12
+    degenerate: float = 1e-30
+    normal_length: float = 1e-9
+    hull_weight: float = 1e-12
+    fraction: float = 1e-12
+    input_unit_norm: float = 1e-3
+    registration: float = 1e-6
+    grid_step: float = 1e-6
+    demo_step: float = 1e-9
+    grid_match_deg: float = 1e-6
+    grid_range_deg: float = 1e-9
+    grid_uniform: float = 1e-9
+    grid_same_rad: float = 1e-12
 
 
 TOL = Tolerances()

@@ -55,7 +55,7 @@ import trimesh
 
 from .errors import ConfigError, MeshError, TableError
 from .files import file_sha256, write_bytes
-from .geometry import matrix_from_quat, unit
+from .geometry import matrix_from_quat, TOL, unit
 from .table import PoseTable
 from .typed import Floats, Vec3
 
@@ -213,7 +213,8 @@ def knee_kinematics(table: PoseTable, marks: Landmarks, *,
     else:
         knee = np.asarray([float(a) for a in angles_deg], dtype=np.float64)
     lo, hi = float(grid_deg.min()), float(grid_deg.max())
-    bad = knee[(knee < lo - 1e-9) | (knee > hi + 1e-9) | ~np.isfinite(knee)]
+    tol = TOL.grid_range_deg
+    bad = knee[(knee < lo - tol) | (knee > hi + tol) | ~np.isfinite(knee)]
     if knee.size == 0 or bad.size:
         raise ConfigError(f'knee flexion angles {bad.tolist() or "[]"} deg are outside the '
                           f'table ({lo:g} to {hi:g} deg of flexion); pick angles inside it')

@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from .errors import ConfigError, SettleError, TableError
-from .geometry import KneeAxes, pose_from, rotation_about, unit
+from .geometry import KneeAxes, pose_from, rotation_about, TOL, unit
 from .meshes import UNIT_SCALE, Units
 from .settle import SettleParams
 from .typed import Floats, Pose
@@ -224,7 +224,7 @@ def grid_values(spec: Any, where: str) -> Floats:
     if step == 0:
         raise ConfigError(f'{where}: step must not be zero')
     count = abs(stop - start) / abs(step)
-    if abs(count - round(count)) > 1e-6:
+    if abs(count - round(count)) > TOL.grid_step:
         raise ConfigError(f'{where}: step {abs(step):g} does not divide {start:g}..{stop:g}; '
                           'choose a step that lands on stop')
     if round(count) + 1 > 100_000:

@@ -60,8 +60,6 @@ MARKER_RGB = (1.0, 0.0, 0.0)       # non-converged markers; no other element use
 PNG_KEY_NONCONVERGED = 'kneeseat:nonconverged'
 PNG_KEY_TABLE = 'kneeseat:table'
 
-# A requested angle this close to a grid node is that node (deg): round-off in deg <-> rad.
-_GRID_MATCH_DEG = 1e-6
 _DEFAULT_RENDER_PANELS = 5
 # Curve colours: Tableau without its red, so that red means "not converged" only.
 _CURVE_COLOURS = ('tab:blue', 'tab:orange', 'tab:green', 'tab:purple', 'tab:brown',
@@ -378,12 +376,12 @@ def _varus_columns(grid_deg: Floats, requested: Sequence[float] | None
         return [(c, f'varus {grid_deg[c]:g}°') for c in picks]
     columns: list[tuple[int, str]] = []
     for value in _finite_angles(requested, 'varus_deg'):
-        if not grid_deg[0] - _GRID_MATCH_DEG <= value <= grid_deg[-1] + _GRID_MATCH_DEG:
+        if not grid_deg[0] - TOL.grid_match_deg <= value <= grid_deg[-1] + TOL.grid_match_deg:
             raise _outside('varus_deg', float(value), grid_deg)
         c = int(np.argmin(np.abs(grid_deg - value)))
         if any(c == seen for seen, _ in columns):
             continue
-        if abs(grid_deg[c] - value) <= _GRID_MATCH_DEG:
+        if abs(grid_deg[c] - value) <= TOL.grid_match_deg:
             columns.append((c, f'varus {grid_deg[c]:g}°'))
         else:
             columns.append((c, f'varus {value:g}° → {grid_deg[c]:g}° (nearest grid)'))
@@ -404,10 +402,10 @@ def _flexion_angles(grid_deg: Floats, requested: Sequence[float] | None
                           f'{RENDER_MAX_PANELS} per picture')
     result: list[tuple[float, int | None]] = []
     for value in angles:
-        if not grid_deg[0] - _GRID_MATCH_DEG <= value <= grid_deg[-1] + _GRID_MATCH_DEG:
+        if not grid_deg[0] - TOL.grid_match_deg <= value <= grid_deg[-1] + TOL.grid_match_deg:
             raise _outside('flexion_deg', float(value), grid_deg)
         f = int(np.argmin(np.abs(grid_deg - value)))
-        on_node = abs(grid_deg[f] - value) <= _GRID_MATCH_DEG
+        on_node = abs(grid_deg[f] - value) <= TOL.grid_match_deg
         result.append((float(grid_deg[f]) if on_node else float(value),
                        f if on_node else None))
     return result

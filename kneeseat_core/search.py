@@ -17,7 +17,7 @@ import numpy as np
 
 from .collision import CollisionPair, RigidBody
 from .errors import SettleError
-from .geometry import rotation_about, unit
+from .geometry import rotation_about, TOL, unit
 from .status import Status
 from .typed import Floats, Pose
 
@@ -380,15 +380,15 @@ def _interpolated_normals(body: RigidBody, ids: np.ndarray, points: Floats) -> F
     d00, d01, d11 = (np.einsum('ij,ij->i', x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
     d20, d21 = np.einsum('ij,ij->i', v2, v0), np.einsum('ij,ij->i', v2, v1)
     denom = d00 * d11 - d01 * d01
-    denom = np.where(np.abs(denom) > 1e-30, denom, 1.0)
+    denom = np.where(np.abs(denom) > TOL.degenerate, denom, 1.0)
     wb = (d11 * d20 - d01 * d21) / denom
     wc = (d00 * d21 - d01 * d20) / denom
     w = np.clip(np.stack([1.0 - wb - wc, wb, wc], axis=1), 0.0, None)
-    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), TOL.zero_length)
     vn = body.vertex_normals
     n = w[:, 0:1] * vn[tri[:, 0]] + w[:, 1:2] * vn[tri[:, 1]] + w[:, 2:3] * vn[tri[:, 2]]
     length = np.linalg.norm(n, axis=1, keepdims=True)
-    bad = length[:, 0] < 1e-9
+    bad = length[:, 0] < TOL.normal_length
     n[bad] = body.normals[ids[bad]]
     length[bad] = 1.0
     return n / length
@@ -426,7 +426,7 @@ def _split(points: Floats, normals: Floats, depth: int = 0) -> list[tuple[Floats
     """A patch as one (mean point, mean normal), or split in two across its widest normal
     spread while the normals spread more than PATCH_SPREAD_RAD (at most 8 parts)."""
     mean = normals.sum(axis=0)
-    mean /= max(float(np.linalg.norm(mean)), 1e-12)
+    mean /= max(float(np.linalg.norm(mean)), TOL.zero_length)
     if len(points) == 1 or depth >= 3 or \
             float(np.min(normals @ mean)) >= math.cos(PATCH_SPREAD_RAD):
         return [(points.mean(axis=0), mean)]

@@ -53,7 +53,7 @@ import numpy as np
 from .collision import RigidBody
 from .errors import NoContactError, SettleError
 from .files import file_sha256
-from .geometry import pose_from, quat_from_matrix
+from .geometry import pose_from, quat_from_matrix, TOL
 from .knee import KneeConfig, neutral_pose
 from .meshes import check_mesh_files, load_meshes
 from .settle import settle, SettleParams
@@ -338,7 +338,7 @@ def sweep(config: KneeConfig, executor: Executor,
             if progress:
                 progress(len(res.cells))
 
-    varus_free = [abs(b.varus_fraction) < 1e-12 for b in config.bodies]
+    varus_free = [abs(b.varus_fraction) < TOL.fraction for b in config.bodies]
     # 1. centre cells, cold
     centre_jobs = []
     for b, spec in enumerate(config.bodies):

@@ -14,7 +14,7 @@ import numpy as np
 
 from .errors import TableError
 from .files import write_bytes
-from .geometry import matrix_from_quat
+from .geometry import matrix_from_quat, TOL
 from .status import Status, STATUS_NAMES
 from .table import Lookup, PoseTable
 from .table_format import mesh_entries
@@ -31,7 +31,7 @@ def _grid_text(values_rad: Floats) -> str:
     if deg.size == 1:
         return f'{deg[0]:g} deg (1 value)'
     steps = np.diff(deg)
-    if np.allclose(steps, steps[0], rtol=1e-9, atol=1e-9):
+    if np.allclose(steps, steps[0], rtol=TOL.grid_uniform, atol=TOL.grid_uniform):
         step = f'step {steps[0]:g}'
     else:
         step = f'non-uniform steps {steps.min():g} to {steps.max():g}'

@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .errors import TableError
-from .geometry import matrix_from_quat, pose_from
+from .geometry import matrix_from_quat, pose_from, TOL
 from .knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
 from .meshes import load_mesh
 from .referee import Envelope, Referee, Verdict
@@ -81,7 +81,8 @@ class CellVerdict:
 # ---- a table's cells ------------------------------------------------------------------
 def _varus_free(meta: dict[str, Any], body: int) -> bool:
     specs = meta.get('config', {}).get('resolved', {}).get('bodies', [])
-    return body < len(specs) and abs(float(specs[body].get('varus_fraction', 1.0))) < 1e-12
+    return (body < len(specs)
+            and abs(float(specs[body].get('varus_fraction', 1.0))) < TOL.fraction)
 
 
 def sample_cells(table: PoseTable, count: int | None, seed: int = 20261201

@@ -5,8 +5,8 @@ Inputs are validated here so that the node's callbacks stay glue: every rejectio
 (one tracker message -> one pose per body) avoids numpy where plain floats are faster.
 
 Quaternion tolerance: trackers send float32-ish data (about 7 significant digits) and
-often renormalise after filtering, so `|1 - |q||` up to `QUAT_NORM_TOL` (1e-3, i.e.
-`TOL.unit_norm` scaled by 1e3) is accepted and the quaternion is normalised; anything
+often renormalise after filtering, so `|1 - |q||` up to `QUAT_NORM_TOL`
+(`TOL.input_unit_norm`, 1e-3) is accepted and the quaternion is normalised; anything
 further from unit length is corrupt data and rejected. A zero quaternion is rejected as
 well (it has no rotation), which also covers an uninitialised `Pose` message.
 
@@ -41,7 +41,7 @@ __all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'BadInputError', 'Att
            'rigid_from_pose_stamped', 'transform_stamped', 'UNSTAMPED',
            'angles_from_orientation', 'angles_from_joints', 'rigid_from_fields']
 
-QUAT_NORM_TOL = 1e3 * TOL.unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
+QUAT_NORM_TOL = TOL.input_unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
 JOINT_NAMES = ('knee_flexion', 'knee_varus')
 
 # Diagnostics counter names (keys `dropped_<reason>`), in display order.

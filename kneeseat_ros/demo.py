@@ -53,7 +53,7 @@ import numpy as np
 
 from kneeseat_core.build import build_table, executor_for, materialise_default_knee
 from kneeseat_core.errors import ConfigError, KneeseatError, MeshError, TableError
-from kneeseat_core.geometry import matrix_from_quat
+from kneeseat_core.geometry import matrix_from_quat, TOL
 from kneeseat_core.knee import KneeConfig, load_config
 from kneeseat_core.plots import write_png
 from kneeseat_core.sweep import default_workers
@@ -126,8 +126,8 @@ def _reusable(path: Path, config: KneeConfig) -> tuple[PoseTable | None, str]:
         return None, f'existing table not usable ({err})'
     if (table.flexion_rad.shape != config.flexion_rad.shape
             or table.varus_rad.shape != config.varus_rad.shape
-            or not np.allclose(table.flexion_rad, config.flexion_rad, atol=1e-12)
-            or not np.allclose(table.varus_rad, config.varus_rad, atol=1e-12)):
+            or not np.allclose(table.flexion_rad, config.flexion_rad, atol=TOL.grid_same_rad)
+            or not np.allclose(table.varus_rad, config.varus_rad, atol=TOL.grid_same_rad)):
         return None, 'existing table has another grid'
     return table, 'reused (read_table verified it and its meshes)'
 
@@ -631,7 +631,7 @@ def _step_arg(text: str) -> float:
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a number of degrees") from None
     ratio = 10.0 / step if step > 0 and math.isfinite(step) else 0.0
-    if not ratio or abs(ratio - round(ratio)) > 1e-9:
+    if not ratio or abs(ratio - round(ratio)) > TOL.demo_step:
         raise argparse.ArgumentTypeError(f'{text} deg does not divide 10 deg; use 1, 2, 5 '
                                          'or 10 (or 0.5)')
     return step

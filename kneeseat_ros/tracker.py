@@ -38,16 +38,15 @@ import numpy as np
 import yaml
 
 from kneeseat_core.errors import ConfigError
-from kneeseat_core.geometry import quat_from_matrix
+from kneeseat_core.geometry import quat_from_matrix, TOL
 
 __all__ = ['Rigid', 'IDENTITY', 'compose', 'inverse', 'relative_rotation', 'Registration',
            'load_registration', 'Pairer', 'RIGID_TOL', 'ROLES', 'finite_rigid']
 
 Rigid = tuple[float, float, float, float, float, float, float]
 IDENTITY: Rigid = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-# Orthonormality and unit-norm tolerance of a registration (registration files are written
-# with 6 to 9 digits; a scale error of 1e-6 is 0.2 um at 0.2 m).
-RIGID_TOL = 1e-6
+# Orthonormality and unit-norm tolerance of a registration (`Tolerances.registration`).
+RIGID_TOL = TOL.registration
 ROLES = ('femur', 'tibia')
 _T = TypeVar('_T')
 
