@@ -56,6 +56,10 @@ __all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values', 'neutral_pose
 class BodySpec:
     """One body of the knee; `push` and fractions matter for moving bodies only.
 
+    The defaults are a config's: a body without `push` is pushed along +Y, the long axis of
+    the knee frame (Y superior), as a tibia below the femur is - unlike `SettleParams.push`,
+    the default of a single `kneeseat settle`, which pushes along -Y. A body follows the
+    whole flexion and varus unless its fractions say otherwise.
     `mesh` and `display_mesh` are the first collision and display mesh; `meshes` and
     `display_meshes` hold every one (filled from `mesh`/`display_mesh` when not given).
     """
@@ -286,12 +290,14 @@ def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
                     display_meshes=displays)
     if not moving:
         return spec
+    given: dict[str, Any] = {}       # keys left out keep BodySpec's defaults
+    if 'push' in data:
+        given['push'] = _vector(data['push'], f'{where}.push')
+    for key in ('flexion_fraction', 'varus_fraction'):
+        if key in data:
+            given[key] = _number(data[key], f'{where}.{key}')
     push_fraction = data.get('push_flexion_fraction')
-    return replace(spec, push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
-                   flexion_fraction=_number(data.get('flexion_fraction', 1.0),
-                                            f'{where}.flexion_fraction'),
-                   varus_fraction=_number(data.get('varus_fraction', 1.0),
-                                          f'{where}.varus_fraction'),
+    return replace(spec, **given,
                    locked_slide=(None if data.get('locked_slide') is None else
                                  _vector(data['locked_slide'], f'{where}.locked_slide')),
                    envelope=(None if data.get('envelope') is None else
@@ -329,7 +335,7 @@ def _settle_params(data: Any) -> SettleParams:
             max_slide_m=float(data.get('max_slide_m', _DEFAULTS.max_slide_m)),
             max_spin_rad=(_DEFAULTS.max_spin_rad if data.get('max_spin_deg') is None
                           else math.radians(float(data['max_spin_deg']))),
-            method=data.get('method', 'default'))
+            method=data.get('method', _DEFAULTS.method))
     except (TypeError, ValueError) as err:
         raise ConfigError(f'settle: {err}') from None
     try:

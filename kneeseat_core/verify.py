@@ -21,6 +21,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from .args import vector3
 from .errors import TableError
 from .geometry import matrix_from_quat, pose_from, TOL
 from .knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
@@ -282,7 +283,7 @@ def _verify_one_cmd(args: argparse.Namespace) -> int:
     return EXIT_AT_REST if at_rest else EXIT_NOT_AT_REST
 
 
-def register_command(sub: Any, vector3: Any) -> None:
+def register_command(sub: Any) -> None:
     """Add `verify` to the `kneeseat` subcommand parser."""
     from .sweep import default_workers
     p = sub.add_parser('verify', help='check settled poses with the independent referee')

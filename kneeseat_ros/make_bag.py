@@ -21,6 +21,7 @@ import sys
 
 import numpy as np
 
+from kneeseat_core.args import join_negative_values
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.typed import Floats
@@ -35,7 +36,7 @@ __all__ = ['TrajectoryError', 'AngleTrack', 'sweep', 'gait', 'read_csv', 'parse_
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000   # fixed epoch: 2023-11-14T22:13:20Z
 DEFAULT_AXES = '0,0,1/1,0,0/0,1,0'                  # flexion / varus / long (TKA frame)
 CSV_COLUMNS = ('time_s', 'flexion_deg', 'varus_deg')
-_VECTOR_OPTIONS = ('--axes',)
+_VECTOR_OPTIONS = ('--axes',)     # values may start with a minus: -1,0,0/...
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -216,25 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _join_vector_options(argv: Sequence[str]) -> list[str]:
-    """Let `--axes -1,0,0/...` (a value starting with '-') through argparse."""
-    out: list[str] = []
-    args = list(argv)
-    i = 0
-    while i < len(args):
-        if args[i] in _VECTOR_OPTIONS and i + 1 < len(args):
-            out.append(f'{args[i]}={args[i + 1]}')
-            i += 2
-        else:
-            out.append(args[i])
-            i += 1
-    return out
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `make_bag` console script; returns the exit code."""
     args = build_parser().parse_args(
-        _join_vector_options(sys.argv[1:] if argv is None else argv))
+        join_negative_values(sys.argv[1:] if argv is None else argv, _VECTOR_OPTIONS))
     try:
         if args.start_ns < 0:
             raise TrajectoryError(f'--start-ns {args.start_ns} is negative; give ns since the '
