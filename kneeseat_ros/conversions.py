@@ -23,7 +23,7 @@ from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from geometry_msgs.msg import Pose, PoseStamped
 import numpy as np
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
@@ -33,13 +33,12 @@ from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix,
 from kneeseat_core.typed import Floats, Pose as PoseArray
 from .errors import BadInputError
 
-__all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'BadInputError', 'AttitudeDecoder',
-           'stamp_ns', 'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped',
-           'angles_from_joint_state', 'pose_stamped', 'pose_stamped_for_attitude',
-           'joint_state', 'pose_from_msg', 'mesh_marker', 'MARKER_ID_STRIDE',
-           'display_mesh_paths', 'body_markers', 'diagnostic_status',
-           'rigid_from_pose_stamped', 'transform_stamped', 'UNSTAMPED',
-           'angles_from_orientation', 'angles_from_joints', 'rigid_from_fields']
+__all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'AttitudeDecoder', 'stamp_ns',
+           'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped', 'angles_from_joint_state',
+           'pose_stamped', 'pose_stamped_for_attitude', 'joint_state', 'pose_from_msg',
+           'mesh_marker', 'MARKER_ID_STRIDE', 'display_mesh_paths', 'body_markers',
+           'diagnostic_status', 'angles_from_orientation', 'angles_from_joints',
+           'rigid_from_fields']
 
 QUAT_NORM_TOL = TOL.input_unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
 JOINT_NAMES = ('knee_flexion', 'knee_varus')
@@ -47,7 +46,6 @@ JOINT_NAMES = ('knee_flexion', 'knee_varus')
 # Diagnostics counter names (keys `dropped_<reason>`), in display order.
 DROP_REASONS = ('nonfinite', 'quaternion', 'frame_id', 'joint_names', 'lengths',
                 'out_of_range', 'unpaired', 'stale', 'malformed')
-UNSTAMPED = 0   # header.stamp of a message nobody stamped (e.g. `ros2 topic pub`'s default)
 
 
 def stamp_ns(stamp: Time) -> int:
@@ -139,24 +137,16 @@ def angles_from_orientation(got_frame: str, quat: Sequence[float],
     return decoder.angles(x / norm, y / norm, z / norm, w / norm)
 
 
-def rigid_from_pose_stamped(msg: PoseStamped, frame_id: str,
-                            what: str) -> tuple[float, float, float, float, float, float, float]:
-    """(px, py, pz, qx, qy, qz, qw) of a tracked rigid body's pose in `frame_id`.
-
-    The quaternion is normalised (within `QUAT_NORM_TOL` of unit length).
+def rigid_from_fields(got_frame: str, pose: Sequence[float], frame_id: str,
+                      what: str) -> tuple[float, float, float, float, float, float, float]:
+    """(px, py, pz, qx, qy, qz, qw) of a tracked rigid body's pose in `frame_id`, from a
+    PoseStamped's frame_id and pose fields; the quaternion is normalised (within
+    `QUAT_NORM_TOL` of unit length).
 
     Raises:
         BadInputError: wrong or empty frame_id ('frame_id'), NaN/inf ('nonfinite'), a zero
             or non-unit quaternion ('quaternion'). The message names `what`.
     """
-    p = msg.pose.position
-    return rigid_from_fields(msg.header.frame_id, (p.x, p.y, p.z, *quat_xyzw(msg.pose)),
-                             frame_id, what)
-
-
-def rigid_from_fields(got_frame: str, pose: Sequence[float], frame_id: str,
-                      what: str) -> tuple[float, float, float, float, float, float, float]:
-    """`rigid_from_pose_stamped` on the fields: frame_id and (px, py, pz, qx, qy, qz, qw)."""
     if got_frame != frame_id:
         raise BadInputError('frame_id', f'{what} frame_id {got_frame!r} is not the world frame '
                             f'{frame_id!r}; set tracker.world_frame or fix the tracker')
@@ -169,19 +159,6 @@ def rigid_from_fields(got_frame: str, pose: Sequence[float], frame_id: str,
                             f'quaternion (tolerance {QUAT_NORM_TOL:g}); send normalised '
                             '(x, y, z, w)')
     return (px, py, pz, x / norm, y / norm, z / norm, w / norm)
-
-
-def transform_stamped(pose: Sequence[float], stamp: Time, parent: str,
-                      child: str) -> TransformStamped:
-    """TransformStamped parent -> child from (px, py, pz, qx, qy, qz, qw)."""
-    msg = TransformStamped()
-    msg.header.stamp = stamp
-    msg.header.frame_id = parent
-    msg.child_frame_id = child
-    t, r = msg.transform.translation, msg.transform.rotation
-    t.x, t.y, t.z = float(pose[0]), float(pose[1]), float(pose[2])
-    r.x, r.y, r.z, r.w = float(pose[3]), float(pose[4]), float(pose[5]), float(pose[6])
-    return msg
 
 
 def angles_from_joint_state(msg: JointState,

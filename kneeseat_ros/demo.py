@@ -60,6 +60,7 @@ from kneeseat_core.sweep import default_workers
 from kneeseat_core.table import PoseTable
 from kneeseat_core.table_io import read_table
 from kneeseat_core.typed import Floats
+from kneeseat_ros import topics
 from kneeseat_ros.conversions import stamp_ns
 from kneeseat_ros.errors import DataMissing, DemoError
 
@@ -79,9 +80,7 @@ MIN_SPIN_SPAN_DEG = 1.0                # spin axes show at least this range
 SHIPPED_BAG = Path(__file__).resolve().parents[1] / 'data' / 'angle_bags' / 'gait_demo'
 NATURAL_CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'natural_knee.yaml'
 KNEES = ('default', 'natural')
-POSE_TOPIC = '/knee/pose'
-DIAGNOSTICS_TOPIC = '/diagnostics'
-STATUS_NAME = 'kneeseat table_server'  # table_server.STATUS_NAME (not imported: no node here)
+POSE_TOPIC = topics.at_root(topics.POSE)
 SERVER_READY_TIMEOUT_S = 60.0          # first /diagnostics after the server starts
 SUBSCRIBER_TIMEOUT_S = 60.0            # replay --wait-timeout-s
 DRAIN_TIMEOUT_S = 20.0                 # after the replay: until every input is counted
@@ -261,13 +260,13 @@ class _Monitor:
         self._table = str(table_path)
         qos = QoSProfile(depth=10, reliability=QoSReliabilityPolicy.RELIABLE,
                          durability=QoSDurabilityPolicy.VOLATILE)
-        self.node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diag, qos)
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos)
 
     def _on_diag(self, msg: Any) -> None:
         for status in msg.status:
             values = {kv.key: kv.value for kv in status.values}
             # another server on this ROS domain serves another table: not ours
-            if status.name == STATUS_NAME and values.get('table') == self._table:
+            if status.name == topics.STATUS_NAME and values.get('table') == self._table:
                 self.values = values
                 self.count += 1
 
@@ -335,7 +334,7 @@ def read_session(bag: Path, bodies: Sequence[str]) -> SessionStats:
         KneeseatError: the bag cannot be read (replay.BagError).
     """
     from kneeseat_ros.replay import bag_files
-    out_topics = {f'/knee/{b}/pose': i for i, b in enumerate(bodies)}
+    out_topics = {topics.at_root(topics.body_pose(b)): i for i, b in enumerate(bodies)}
     inputs: dict[int, tuple[int, tuple[float, float, float, float]]] = {}
     outputs: dict[int, dict[int, tuple[int, list[float], list[float]]]] = {}
     n_out = n_diag = 0
@@ -357,10 +356,10 @@ def read_session(bag: Path, bodies: Sequence[str]) -> SessionStats:
                     p, o = msg.pose.position, msg.pose.orientation
                     outputs.setdefault(stamp_ns(msg.header.stamp), {})[out_topics[topic]] = (
                         t, [p.x, p.y, p.z], [o.x, o.y, o.z, o.w])
-                elif topic == DIAGNOSTICS_TOPIC:
+                elif topic == topics.DIAGNOSTICS:
                     n_diag += 1
                     for status in msg.status:
-                        if status.name == STATUS_NAME:
+                        if status.name == topics.STATUS_NAME:
                             last = {kv.key: kv.value for kv in status.values}
     quats, pos, ori, lat = [], [], [], []
     for stamp, (t_in, quat) in sorted(inputs.items()):

@@ -25,6 +25,7 @@ from kneeseat_core.args import join_negative_values
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.typed import Floats
+from . import topics
 from .conversions import joint_state, pose_stamped, stamp_from_ns
 from .errors import RecorderError, TrajectoryError
 from .recorder import BagRecorder
@@ -36,6 +37,8 @@ __all__ = ['TrajectoryError', 'AngleTrack', 'sweep', 'gait', 'read_csv', 'parse_
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000   # fixed epoch: 2023-11-14T22:13:20Z
 DEFAULT_AXES = '0,0,1/1,0,0/0,1,0'                  # flexion / varus / long (TKA frame)
 CSV_COLUMNS = ('time_s', 'flexion_deg', 'varus_deg')
+POSE_TOPIC = topics.at_root(topics.POSE)
+JOINT_STATES_TOPIC = topics.at_root(topics.JOINT_STATES)
 _VECTOR_OPTIONS = ('--axes',)     # values may start with a minus: -1,0,0/...
 
 
@@ -153,7 +156,7 @@ def parse_axes(text: str) -> KneeAxes:
 
 def write_angle_bag(directory: Path, track: AngleTrack, axes: KneeAxes, *,
                     frame_id: str = 'femur', start_ns: int = DEFAULT_START_NS,
-                    topic: str = '/knee/pose', joint_states: bool = False,
+                    topic: str = POSE_TOPIC, joint_states: bool = False,
                     table_sha256: str = '', table_path: str = '') -> int:
     """Write `track` as PoseStamped messages (and optionally JointState) into a new bag.
 
@@ -173,14 +176,14 @@ def write_angle_bag(directory: Path, track: AngleTrack, axes: KneeAxes, *,
                      table_path=table_path) as recorder:
         recorder.add_topic(topic, 'geometry_msgs/msg/PoseStamped', PUBLISHER_QOS)
         if joint_states:
-            recorder.add_topic('/knee/joint_states', 'sensor_msgs/msg/JointState',
+            recorder.add_topic(JOINT_STATES_TOPIC, 'sensor_msgs/msg/JointState',
                                PUBLISHER_QOS)
         for i, ns in enumerate(int(s) for s in stamps):
             stamp = stamp_from_ns(ns)
             recorder.write(topic, pose_stamped((0.0, 0.0, 0.0), quats[i], stamp, frame_id),
                            ns, ns)
             if joint_states:
-                recorder.write('/knee/joint_states',
+                recorder.write(JOINT_STATES_TOPIC,
                                joint_state(track.flexion_rad[i], track.varus_rad[i], stamp),
                                ns, ns)
     if recorder.error is not None:
@@ -211,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "table's reference frame)")
     p.add_argument('--start-ns', type=int, default=DEFAULT_START_NS,
                    help=f'stamp of t = 0 in ns since the epoch (default {DEFAULT_START_NS})')
-    p.add_argument('--topic', default='/knee/pose', help='pose topic (default /knee/pose)')
+    p.add_argument('--topic', default=POSE_TOPIC, help=f'pose topic (default {POSE_TOPIC})')
     p.add_argument('--joint-states', action='store_true',
                    help='also write sensor_msgs/JointState on /knee/joint_states')
     return p

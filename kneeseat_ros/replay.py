@@ -33,6 +33,7 @@ from rclpy.utilities import remove_ros_args
 import yaml
 
 from kneeseat_core.errors import KneeseatError
+from . import topics
 from .errors import BagError
 from .msgdefs import message_class
 
@@ -42,7 +43,7 @@ __all__ = ['BagError', 'BagMessage', 'PUBLISHER_QOS', 'DEFAULT_TOPICS', 'bag_fil
 PUBLISHER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                            reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.VOLATILE)
-DEFAULT_TOPICS = ('/knee/pose', '/knee/joint_states')
+DEFAULT_TOPICS = (topics.at_root(topics.POSE), topics.at_root(topics.JOINT_STATES))
 PROGRESS_PERIOD_S = 0.5
 WAIT_SLICE_S = 0.1          # longest uninterrupted wait, so Ctrl-C acts at once
 

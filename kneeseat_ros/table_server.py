@@ -67,7 +67,7 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Any, Literal
+from typing import Any, Literal, TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
@@ -95,6 +95,7 @@ from kneeseat_core.errors import (ConfigError, KneeseatError, NonFiniteError, Ou
                                   TableError)
 from kneeseat_core.table import Lookup, PoseTable
 from kneeseat_core.table_io import read_table
+from kneeseat_ros import topics
 from kneeseat_ros.cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state,
                               encode_pose_stamped, PoseStampedWriter, TfWriter)
 from kneeseat_ros.conversions import (
@@ -102,8 +103,12 @@ from kneeseat_ros.conversions import (
     diagnostic_status, display_mesh_paths, DROP_REASONS, JOINT_NAMES, quat_xyzw,
     rigid_from_fields, stamp_from_ns, stamp_ns)
 from kneeseat_ros.errors import BadInputError, CdrError
+from kneeseat_ros.topics import STATUS_NAME
 from kneeseat_ros.tracker import (compose, load_registration, Pairer, Registration,
                                   relative_rotation, Rigid)
+
+if TYPE_CHECKING:
+    from kneeseat_ros.recorder import BagRecorder
 
 __all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'TF_QOS', 'STATUS_NAME', 'ServerParams', 'TableServer',
            'load_table', 'main', 'USAGE']
@@ -126,12 +131,6 @@ TF_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
 # serve(): the input wait also wakes this often to look at the context (a shutdown whose
 # guard-condition trigger lands before the context is down would otherwise be missed).
 SHUTDOWN_CHECK_NS = 1_000_000_000
-STATUS_NAME = 'kneeseat table_server'
-POSE_TOPIC = 'knee/pose'
-JOINT_TOPIC = 'knee/joint_states'
-MARKER_TOPIC = 'knee/markers'
-DIAGNOSTICS_TOPIC = '/diagnostics'
-TF_TOPIC = '/tf'
 WARN_THROTTLE_S = 2.0
 _BODY_NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 _BODY_RGBA = ((0.85, 0.8, 0.7, 1.0), (0.7, 0.8, 0.9, 1.0), (0.8, 0.9, 0.7, 1.0))
@@ -214,9 +213,9 @@ _PARAMETERS: tuple[tuple[str, Any, int, str, bool], ...] = (
      'input (s, >= diagnostics_period_s).', True),
     ('tracker.registration', '', _S, 'Tracker mode: registration YAML (marker cluster -> '
      'bone for femur and tibia); empty = attitude mode (knee/pose, knee/joint_states).', True),
-    ('tracker.femur_topic', 'tracker/femur/pose', _S,
+    ('tracker.femur_topic', topics.TRACKER_FEMUR, _S,
      'Tracker mode: PoseStamped of the thigh marker cluster in the world frame.', True),
-    ('tracker.tibia_topic', 'tracker/tibia/pose', _S,
+    ('tracker.tibia_topic', topics.TRACKER_TIBIA, _S,
      'Tracker mode: PoseStamped of the shank marker cluster in the world frame.', True),
     ('tracker.world_frame', 'world', _S, "Tracker mode: the tracker's frame (frame_id of "
      'its inputs and of the world_pose outputs).', True),
@@ -359,8 +358,7 @@ class TableServer(Node):
         self._window_start_ns = self._clock.now().nanoseconds
         self._latencies_ns: list[int] = []
         self._last: tuple[Lookup, int, int] | None = None
-        self._recorder: Any = None
-        self._recorder_dir: Path | None = None
+        self._recorder: BagRecorder | None = None
         self._recorder_error_logged = False
         self._pairer: Pairer[Rigid] | None = None
 
@@ -369,23 +367,23 @@ class TableServer(Node):
         self._route = self._make_route(served)
         self._inputs_group = _InputsGroup()
         self._diag_pub = self.create_publisher(
-            DiagnosticArray, DIAGNOSTICS_TOPIC, OUTPUT_QOS,
+            DiagnosticArray, topics.DIAGNOSTICS, OUTPUT_QOS,
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._tf_pub, self._tf_type = self._make_tf_publisher()
         self._marker_pub = None
         if self.params.publish_markers:
             self._marker_pub = self.create_publisher(
-                MarkerArray, MARKER_TOPIC, OUTPUT_QOS,
+                MarkerArray, topics.MARKERS, OUTPUT_QOS,
                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
             self.create_timer(1.0 / self.params.marker_rate_hz, self._publish_markers)
             self._check_meshes()
         self._inputs: list[tuple[Any, Callable[[Any], None], str]] = []
         if self._registration is None:
             self._inputs += [
-                (self.create_subscription(PoseStamped, POSE_TOPIC, self._on_pose, INPUT_QOS,
+                (self.create_subscription(PoseStamped, topics.POSE, self._on_pose, INPUT_QOS,
                                           raw=True, callback_group=self._inputs_group),
                  self._handle_pose, 'geometry_msgs/msg/PoseStamped'),
-                (self.create_subscription(JointState, JOINT_TOPIC, self._on_joints,
+                (self.create_subscription(JointState, topics.JOINT_STATES, self._on_joints,
                                           INPUT_QOS, raw=True,
                                           callback_group=self._inputs_group),
                  self._handle_joints, 'sensor_msgs/msg/JointState')]
@@ -418,7 +416,7 @@ class TableServer(Node):
             f'{[p.topic_name for p in self._route.body_pubs + self._route.body_world_pubs]} '
             f'(reliable, depth {OUTPUT_QOS.depth}), tf '
             f'{"on" if self._tf_pub is not None else "off"}; recording '
-            f'{self._recorder_dir if self._recorder is not None else "off"}')
+            f'{self._recorder.directory if self._recorder is not None else "off"}')
 
     # ------------------------------------------------------------------ setup
     def _read_parameters(self) -> ServerParams:
@@ -465,13 +463,13 @@ class TableServer(Node):
         """Publishers for `served` (created once per topic), bundled with it."""
         for body in served.bodies:
             if body not in self._pubs:
-                self._pubs[body] = self._pose_publisher(f'knee/{body}/pose')
+                self._pubs[body] = self._pose_publisher(topics.body_pose(body))
         world: tuple[Publisher, ...] = ()
         reference = None
         if self._registration is not None:
             for body in (served.reference, *served.bodies):
                 if body not in self._world_pubs:
-                    self._world_pubs[body] = self._pose_publisher(f'knee/{body}/world_pose')
+                    self._world_pubs[body] = self._pose_publisher(topics.body_world_pose(body))
             reference = self._world_pubs[served.reference]
             world = tuple(self._world_pubs[b] for b in served.bodies)
         return _Route(served, tuple(self._pubs[b] for b in served.bodies), world, reference)
@@ -490,7 +488,7 @@ class TableServer(Node):
             return None, None
         try:
             from tf2_msgs.msg import TFMessage
-            return self.create_publisher(TFMessage, TF_TOPIC, TF_QOS), TFMessage
+            return self.create_publisher(TFMessage, topics.TF, TF_QOS), TFMessage
         except Exception as err:     # ImportError, or its typesupport library not loadable
             self._log.info(f'publish_tf: /tf is off: tf2_msgs is not usable here ({err}); '
                            'build it as the README says (no pip wheel exists) or set '
@@ -539,7 +537,7 @@ class TableServer(Node):
             table_sha256=self._served.table.sha256, table_path=str(self._served.path))
         for spec in specs:
             recorder.add_spec(spec)
-        self._recorder, self._recorder_dir = recorder, directory
+        self._recorder = recorder
 
     # -------------------------------------------------------------- hot path
     def _on_pose(self, msg: PoseStamped) -> None:
@@ -916,10 +914,10 @@ class TableServer(Node):
         if rec.error:
             if not self._recorder_error_logged:
                 self._recorder_error_logged = True
-                self._log.error(f'recording to {self._recorder_dir} stopped: {rec.error}; '
+                self._log.error(f'recording to {rec.directory} stopped: {rec.error}; '
                                 'still serving poses')
             return f'error: {rec.error}'
-        return f'recording {self._recorder_dir} ({rec.message_count} messages)'
+        return f'recording {rec.directory} ({rec.message_count} messages)'
 
     def _publish_diagnostics(self) -> None:
         array = self.diagnostics()
@@ -971,7 +969,7 @@ class TableServer(Node):
         if self._recorder is not None:
             self._recorder.close()
             if self._recorder.error:
-                self._log.error(f'recording to {self._recorder_dir} failed: '
+                self._log.error(f'recording to {self._recorder.directory} failed: '
                                 f'{self._recorder.error}')
         super().destroy_node()
 

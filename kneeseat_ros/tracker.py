@@ -30,7 +30,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-import math
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
@@ -40,11 +39,10 @@ import yaml
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import quat_from_matrix, TOL
 
-__all__ = ['Rigid', 'IDENTITY', 'compose', 'inverse', 'relative_rotation', 'Registration',
-           'load_registration', 'Pairer', 'RIGID_TOL', 'ROLES', 'finite_rigid']
+__all__ = ['Rigid', 'compose', 'inverse', 'relative_rotation', 'Registration',
+           'load_registration', 'Pairer', 'RIGID_TOL', 'ROLES']
 
 Rigid = tuple[float, float, float, float, float, float, float]
-IDENTITY: Rigid = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 # Orthonormality and unit-norm tolerance of a registration (`Tolerances.registration`).
 RIGID_TOL = TOL.registration
 ROLES = ('femur', 'tibia')
@@ -232,8 +230,3 @@ class Pairer(Generic[_T]):
     def pending(self) -> int:
         """Samples waiting for a partner (both sides)."""
         return len(self._waiting[0]) + len(self._waiting[1])
-
-
-def finite_rigid(values: tuple[float, ...]) -> bool:
-    """Whether every component of a pose tuple is finite."""
-    return all(math.isfinite(v) for v in values)

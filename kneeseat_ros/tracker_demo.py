@@ -43,6 +43,7 @@ from kneeseat_core.plots import write_png
 from kneeseat_core.table import PoseTable
 from kneeseat_core.table_io import read_table
 from kneeseat_core.typed import Floats, Poses
+from kneeseat_ros import topics
 
 __all__ = ['leg_motion', 'example_registration', 'registration_yaml', 'expected_world',
            'pose_matrix', 'main']
@@ -186,12 +187,12 @@ def _run(args: argparse.Namespace) -> int:
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     reliable = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
-    pubs = [node.create_publisher(PoseStamped, f'tracker/{s}/pose', reliable)
-            for s in ('femur', 'tibia')]
+    pubs = [node.create_publisher(PoseStamped, topic, reliable)
+            for topic in (topics.TRACKER_FEMUR, topics.TRACKER_TIBIA)]
     answers: dict[tuple[str, int], Any] = {}
     for name in names:
         node.create_subscription(
-            PoseStamped, f'knee/{name}/world_pose',
+            PoseStamped, topics.body_world_pose(name),
             lambda m, name=name: answers.__setitem__((name, stamp_ns(m.header.stamp)), m),
             reliable)
 
@@ -204,7 +205,7 @@ def _run(args: argparse.Namespace) -> int:
 
     try:
         spin_until(lambda: all(p.get_subscription_count() for p in pubs)
-                   and all(node.count_publishers(f'knee/{n}/world_pose') for n in names),
+                   and all(node.count_publishers(topics.body_world_pose(n)) for n in names),
                    30.0, 'discovery of table_server')
         # warm-up: the first best-effort samples after discovery can be lost; send the
         # first pose with fresh stamps (earlier than the session) until one is answered
