@@ -23,6 +23,7 @@ from typing import Any, TextIO
 
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.well_known import MessageEncoding, Profile
 import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -99,7 +100,7 @@ def _read_file(path: Path, topics: set[str] | None) -> list[BagMessage]:
         with open(path, 'rb') as stream:
             reader = make_reader(stream)
             header = reader.get_header()
-            if header.profile != 'ros2':
+            if header.profile != Profile.ROS2:
                 raise BagError(f'{path} has MCAP profile {header.profile!r}, not ros2; replay '
                                'only plays ROS 2 bags')
             if reader.get_summary() is None:
@@ -109,7 +110,7 @@ def _read_file(path: Path, topics: set[str] | None) -> list[BagMessage]:
             for schema, channel, message in reader.iter_messages(log_time_order=True):
                 if topics is not None and channel.topic not in topics:
                     continue
-                if channel.message_encoding != 'cdr' or schema is None:
+                if channel.message_encoding != MessageEncoding.CDR or schema is None:
                     raise BagError(f'{path}: topic {channel.topic} is encoded as '
                                    f'{channel.message_encoding!r} without a ros2 schema; only '
                                    'cdr messages can be replayed')

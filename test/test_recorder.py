@@ -23,7 +23,8 @@ import yaml
 
 from kneeseat_ros.errors import RecorderError
 from kneeseat_ros.msgdefs import message_definition, SEPARATOR, serialize, type_hash
-from kneeseat_ros.recorder import BagRecorder, qos_to_dicts, read_readable, recover
+from kneeseat_ros.recorder import BagRecorder, qos_to_dicts
+from kneeseat_ros.recovery import read_readable, recover
 
 T0 = 1_700_000_000_000_000_000
 SHA = 'ab' * 32
