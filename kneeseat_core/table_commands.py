@@ -100,7 +100,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from .plots import render_table
+    from .render import render_table
     table = read_table(args.table)
     out = render_table(table, _table_meshes(table, not args.implants), args.out,
                        flexion_deg=args.flexion_deg, view=args.view)

@@ -74,16 +74,10 @@ class Responder:
     # ---- inputs ---------------------------------------------------------------------
     def handle_pose(self, data: bytes) -> None:
         """Attitude mode: a PoseStamped of the tibia's orientation in the reference frame."""
-        fields = self._pose_fields(data)
-        if fields is None:
+        taken = self._take_pose(data, 0)
+        if taken is None:
             return
-        sec, nanosec, frame, pose = fields
-        self._counters.received += 1
-        ns = self._stamped(sec, nanosec)
-        if self.recorder is not None:
-            self.recorder.write_raw(self.input_topics[0],
-                                    encode_pose_stamped(sec, nanosec, frame, pose),
-                                    self._now_ns(), ns)
+        sec, nanosec, frame, pose, ns = taken
         served = self.route.served
         try:
             flexion, varus = angles_from_orientation(frame, pose[3:], served.decoder,
@@ -126,16 +120,10 @@ class Responder:
     def handle_rigid(self, side: int, data: bytes) -> None:
         """Tracker mode: one rigid body's world pose (side 0 femur, 1 tibia); answers when
         it completes a pair."""
-        fields = self._pose_fields(data)
-        if fields is None:
+        taken = self._take_pose(data, side)
+        if taken is None:
             return
-        sec, nanosec, frame, pose = fields
-        self._counters.received += 1
-        ns = self._stamped(sec, nanosec)
-        if self.recorder is not None:
-            self.recorder.write_raw(self.input_topics[side],
-                                    encode_pose_stamped(sec, nanosec, frame, pose),
-                                    self._now_ns(), ns)
+        sec, nanosec, frame, pose, ns = taken
         assert self._tracker is not None
         registration, pairer, world, tolerance_s = self._tracker
         try:
@@ -170,10 +158,13 @@ class Responder:
             self._counters.unstamped += 1
         return ns
 
-    def _pose_fields(self, data: bytes) -> tuple[int, int, str, tuple[float, ...]] | None:
-        """Stamp, frame and pose of a PoseStamped's CDR (rclpy for other encodings)."""
+    def _take_pose(self, data: bytes, index: int
+                   ) -> tuple[int, int, str, tuple[float, ...], int] | None:
+        """Stamp, frame and pose of the PoseStamped CDR of input `index` (rclpy for other
+        encodings) and its stamp in ns; counted as received and recorded. None when it
+        cannot be decoded (counted as malformed)."""
         try:
-            return decode_pose_stamped(data)
+            sec, nanosec, frame, pose = decode_pose_stamped(data)
         except CdrError as err:
             try:
                 msg = deserialize_message(data, PoseStamped)
@@ -182,8 +173,16 @@ class Responder:
                 self.drop('malformed', err)
                 return None
             p = msg.pose.position
-            return (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id,
-                    (p.x, p.y, p.z, *quat_xyzw(msg.pose)))
+            sec, nanosec, frame = (msg.header.stamp.sec, msg.header.stamp.nanosec,
+                                   msg.header.frame_id)
+            pose = (p.x, p.y, p.z, *quat_xyzw(msg.pose))
+        self._counters.received += 1
+        ns = self._stamped(sec, nanosec)
+        if self.recorder is not None:
+            self.recorder.write_raw(self.input_topics[index],
+                                    encode_pose_stamped(sec, nanosec, frame, pose),
+                                    self._now_ns(), ns)
+        return sec, nanosec, frame, pose, ns
 
     # ---- the answer -------------------------------------------------------------------
     def _answer(self, flexion: float, varus: float, sec: int, nanosec: int, ns: int,
