@@ -4,9 +4,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['Floats', 'Pose', 'Poses', 'Vec3', 'Quat']
+__all__ = ['Floats', 'Bools', 'Ints', 'Pose', 'Poses', 'Vec3', 'Quat']
 
 Floats = NDArray[np.float64]
+Bools = NDArray[np.bool_]
+Ints = NDArray[np.int64]      # indices and counts (also int8 status codes: see Status)
 Pose = NDArray[np.float64]    # (4, 4) homogeneous, a_from_b, metres
 Poses = NDArray[np.float64]   # (n, 4, 4)
 Vec3 = NDArray[np.float64]    # (3,)
