@@ -293,90 +293,130 @@ def sweep(config: KneeConfig, executor: Executor,
         All poses in table layout; non-converged cells are flagged, never hidden.
     """
     started = time.perf_counter()
-    flex, var = config.flexion_rad, config.varus_rad
-    nb, nf, nv = len(config.bodies), len(flex), len(var)
-    groups = [tuple(str(m) for m in spec.meshes) for spec in (config.reference, *config.bodies)]
-    scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
-                      tuple(file_sha256(Path(p)) for g in groups for p in g))
-    check_mesh_files(scene.paths(), config.units)   # once here; workers load quietly
-    f0 = int(np.argmin(np.abs(flex)))
-    v0 = int(np.argmin(np.abs(var)))
-    poses = np.zeros((nb, nf, nv, 4, 4))
-    converged = np.zeros((nb, nf, nv), dtype=bool)
-    iterations = np.zeros((nb, nf, nv), dtype=np.int64)
-    status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
-    backed = np.zeros((nb, nf, nv))
-    failures: list[str] = []
-    checks = 0
+    run = _Sweep(config, progress)
+    run.collect([executor.submit(run_chain, j) for j in run.centre_jobs()])
+    run.anchor_at_centres()
+    run.collect([executor.submit(run_chain, j) for j in run.spine_jobs()])
+    run.collect([executor.submit(run_chain, j) for j in run.rib_jobs()])
+    run.copy_across_varus()
+    return run.result(time.perf_counter() - started)
 
-    centre_attitudes = [config.attitude(spec, flex[f0], var[v0]) for spec in config.bodies]
-    anchors = np.array([neutral_pose(a0) for a0 in centre_attitudes])
 
-    def job(body: int, cells: Sequence[tuple[int, int]], start: Pose,
+class _Sweep:
+    """One sweep's cells in table layout, filled phase by phase (module docstring)."""
+
+    def __init__(self, config: KneeConfig, progress: Callable[[int], None] | None) -> None:
+        self.config, self.progress = config, progress
+        flex, var = config.flexion_rad, config.varus_rad
+        nb, nf, nv = len(config.bodies), len(flex), len(var)
+        groups = [tuple(str(m) for m in spec.meshes)
+                  for spec in (config.reference, *config.bodies)]
+        self.scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
+                               tuple(file_sha256(Path(p)) for g in groups for p in g))
+        check_mesh_files(self.scene.paths(), config.units)   # once here; workers load quietly
+        self.f0 = int(np.argmin(np.abs(flex)))
+        self.v0 = int(np.argmin(np.abs(var)))
+        self.poses = np.zeros((nb, nf, nv, 4, 4))
+        self.converged = np.zeros((nb, nf, nv), dtype=bool)
+        self.iterations = np.zeros((nb, nf, nv), dtype=np.int64)
+        self.status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
+        self.backed = np.zeros((nb, nf, nv))
+        self.failures: list[str] = []
+        self.checks = 0
+        self.centre_attitudes = [config.attitude(spec, flex[self.f0], var[self.v0])
+                                 for spec in config.bodies]
+        self.anchors = np.array([neutral_pose(a0) for a0 in self.centre_attitudes])
+        self.varus_free = [abs(b.varus_fraction) < TOL.fraction for b in config.bodies]
+
+    def job(self, body: int, cells: Sequence[tuple[int, int]], start: Pose,
             start_attitude: Floats) -> ChainJob:
+        """The chain of `cells` of `body`, from `start` (settled at `start_attitude`)."""
+        config, flex, var = self.config, self.config.flexion_rad, self.config.varus_rad
         spec = config.bodies[body]
-        return ChainJob(scene, body, tuple(cells),
+        return ChainJob(self.scene, body, tuple(cells),
                         np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
-                        start, start_attitude, anchors[body], centre_attitudes[body])
+                        start, start_attitude, self.anchors[body], self.centre_attitudes[body])
 
-    def collect(futures: Iterable[Future]) -> None:
-        nonlocal checks
+    def collect(self, futures: Iterable[Future[ChainResult]]) -> None:
+        """Put every finished chain's cells in place, as they finish."""
+        flex, var = self.config.flexion_rad, self.config.varus_rad
         for fut in as_completed(list(futures)):
-            res: ChainResult = fut.result()
+            res = fut.result()
             for k, (f, v) in enumerate(res.cells):
-                poses[res.body, f, v] = res.poses[k]
-                converged[res.body, f, v] = res.converged[k]
-                iterations[res.body, f, v] = res.iterations[k]
-                status[res.body, f, v] = res.status[k]
-                backed[res.body, f, v] = res.backed_out_m[k]
-                if not res.converged[k] and len(failures) < 5:
-                    failures.append(f'{config.bodies[res.body].name} flexion '
-                                    f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}:'
-                                    f' {res.reasons[k]}')
-            checks += res.collision_checks
-            if progress:
-                progress(len(res.cells))
+                self.poses[res.body, f, v] = res.poses[k]
+                self.converged[res.body, f, v] = res.converged[k]
+                self.iterations[res.body, f, v] = res.iterations[k]
+                self.status[res.body, f, v] = res.status[k]
+                self.backed[res.body, f, v] = res.backed_out_m[k]
+                if not res.converged[k] and len(self.failures) < 5:
+                    self.failures.append(
+                        f'{self.config.bodies[res.body].name} flexion '
+                        f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}: '
+                        f'{res.reasons[k]}')
+            self.checks += res.collision_checks
+            if self.progress:
+                self.progress(len(res.cells))
 
-    varus_free = [abs(b.varus_fraction) < TOL.fraction for b in config.bodies]
-    # 1. centre cells, cold
-    centre_jobs = []
-    for b, spec in enumerate(config.bodies):
-        a0 = config.attitude(spec, flex[f0], var[v0])
-        centre_jobs.append(job(b, [(f0, v0)], cold_start(a0, config.params(spec, flex[f0],
-                                                                           var[v0])), a0))
-    collect([executor.submit(run_chain, j) for j in centre_jobs])
-    for b in range(nb):        # every other cell's envelope: from the centre rest, carried
-        if converged[b, f0, v0]:
-            anchors[b] = poses[b, f0, v0]
-    # 2. spines: varus v0, flexion outward from f0
-    spine_jobs = []
-    for b, spec in enumerate(config.bodies):
-        for side in _outward(nf, f0):
-            if side:
-                spine_jobs.append(job(b, [(f, v0) for f in side], poses[b, f0, v0],
-                                      config.attitude(spec, flex[f0], var[v0])))
-    collect([executor.submit(run_chain, j) for j in spine_jobs])
-    # 3. ribs: every flexion value of a body that feels varus, varus outward from the spine
-    rib_jobs = []
-    for b, spec in enumerate(config.bodies):
-        if varus_free[b]:
-            continue
-        for f in range(nf):
-            for side in _outward(nv, v0):
+    def centre_jobs(self) -> list[ChainJob]:
+        """1. Each body's centre cell, from its cold start."""
+        config, f0, v0 = self.config, self.f0, self.v0
+        jobs = []
+        for b, spec in enumerate(config.bodies):
+            a0 = config.attitude(spec, config.flexion_rad[f0], config.varus_rad[v0])
+            params = config.params(spec, config.flexion_rad[f0], config.varus_rad[v0])
+            jobs.append(self.job(b, [(f0, v0)], cold_start(a0, params), a0))
+        return jobs
+
+    def anchor_at_centres(self) -> None:
+        """Every other cell's envelope is measured from the centre rest, carried."""
+        for b in range(len(self.config.bodies)):
+            if self.converged[b, self.f0, self.v0]:
+                self.anchors[b] = self.poses[b, self.f0, self.v0]
+
+    def spine_jobs(self) -> list[ChainJob]:
+        """2. Spines: varus v0, flexion outward from f0, from the centre rest."""
+        config, f0, v0 = self.config, self.f0, self.v0
+        jobs = []
+        for b, spec in enumerate(config.bodies):
+            for side in _outward(len(config.flexion_rad), f0):
                 if side:
-                    rib_jobs.append(job(b, [(f, v) for v in side], poses[b, f, v0],
-                                        config.attitude(spec, flex[f], var[v0])))
-    collect([executor.submit(run_chain, j) for j in rib_jobs])
-    for b in range(nb):
-        if varus_free[b]:
-            poses[b] = poses[b, :, v0:v0 + 1]
-            converged[b] = converged[b, :, v0:v0 + 1]
-            iterations[b] = iterations[b, :, v0:v0 + 1]
-            status[b] = status[b, :, v0:v0 + 1]
-            backed[b] = backed[b, :, v0:v0 + 1]
-            if progress:           # the copies are cells of the table too
-                progress(nf * (nv - 1))
-    return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
-                       converged, iterations, status, checks, time.perf_counter() - started,
-                       scene.mesh_sha256, anchors, (f0, v0), backed, tuple(failures))
+                    jobs.append(self.job(b, [(f, v0) for f in side], self.poses[b, f0, v0],
+                                         config.attitude(spec, config.flexion_rad[f0],
+                                                         config.varus_rad[v0])))
+        return jobs
+
+    def rib_jobs(self) -> list[ChainJob]:
+        """3. Ribs: every flexion value of a body that feels varus, varus outward from the
+        spine cell."""
+        config, v0 = self.config, self.v0
+        jobs = []
+        for b, spec in enumerate(config.bodies):
+            if self.varus_free[b]:
+                continue
+            for f in range(len(config.flexion_rad)):
+                for side in _outward(len(config.varus_rad), v0):
+                    if side:
+                        jobs.append(self.job(b, [(f, v) for v in side], self.poses[b, f, v0],
+                                             config.attitude(spec, config.flexion_rad[f],
+                                                             config.varus_rad[v0])))
+        return jobs
+
+    def copy_across_varus(self) -> None:
+        """A body that ignores varus: its spine, copied to every varus value."""
+        nf, nv, v0 = len(self.config.flexion_rad), len(self.config.varus_rad), self.v0
+        for b in range(len(self.config.bodies)):
+            if self.varus_free[b]:
+                for cells in (self.poses, self.converged, self.iterations, self.status,
+                              self.backed):
+                    cells[b] = cells[b, :, v0:v0 + 1]
+                if self.progress:           # the copies are cells of the table too
+                    self.progress(nf * (nv - 1))
+
+    def result(self, wall_s: float) -> SweepResult:
+        """Everything in table layout."""
+        return SweepResult(self.poses[..., :3, 3].copy(),
+                           quat_from_matrix(self.poses[..., :3, :3]), self.converged,
+                           self.iterations, self.status, self.checks, wall_s,
+                           self.scene.mesh_sha256, self.anchors, (self.f0, self.v0),
+                           self.backed, tuple(self.failures))
