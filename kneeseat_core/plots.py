@@ -37,7 +37,7 @@ from .files import atomic_write
 from .geometry import matrix_from_quat, TOL
 from .status import Status, STATUS_NAMES
 from .table import PoseTable
-from .typed import Floats
+from .typed import Bools, Floats
 
 __all__ = ['DPI', 'PLOT_PANEL_IN', 'PLOT_EXTRA_IN', 'SESSION_SIZE_PX', 'MARKER_RGB',
            'PNG_KEY_NONCONVERGED', 'PNG_KEY_TABLE', 'plot_table', 'plot_convergence_map',
@@ -95,7 +95,6 @@ def plot_table(table: PoseTable, out: Path, *, varus_deg: Sequence[float] | None
     grid_varus_deg = np.degrees(np.asarray(table.varus_rad, dtype=np.float64))
     columns = _varus_columns(grid_varus_deg, varus_deg)
     axes = table.axes
-    frame = table.reference_frame
     n_bodies = len(table.bodies)
     converged = np.asarray(table.converged, dtype=bool)
 
@@ -103,34 +102,16 @@ def plot_table(table: PoseTable, out: Path, *, varus_deg: Sequence[float] | None
                  dpi=DPI, layout='constrained')
     FigureCanvasAgg(fig)
     grid = fig.subplots(n_bodies, 4, squeeze=False, sharex=True)
-    ylabels = (f'x ({frame}) [mm]', f'y ({frame}) [mm]', f'z ({frame}) [mm]',
-               'rotation about long axis [deg]')
-    names = ('x', 'y', 'z', 'rotation')
     marked_total = 0
-    for b, (body, body_frame) in enumerate(zip(table.bodies, table.body_frames)):
+    for b in range(n_bodies):
         position_mm = np.asarray(table.position_m[b], dtype=np.float64) * 1e3    # (F, V, 3)
         rotation = matrix_from_quat(table.orientation_xyzw[b])                     # (F, V, 3, 3)
         spin_deg = np.degrees(np.unwrap(axes.decompose(rotation)[2], axis=0))       # (F, V)
         series = (position_mm[..., 0], position_mm[..., 1], position_mm[..., 2], spin_deg)
         bad = ~converged[b][:, [c for c, _ in columns]]                             # (F, k)
-        marked = int(bad.sum())
-        marked_total += marked
-        for j, (values, ylabel, name) in enumerate(zip(series, ylabels, names)):
-            ax = grid[b, j]
-            for k, (c, _) in enumerate(columns):
-                ax.plot(flexion_deg, values[:, c], color=_CURVE_COLOURS[k % len(_CURVE_COLOURS)],
-                        linewidth=1.5, marker='.', markersize=3)
-                rows = np.flatnonzero(bad[:, k])
-                if rows.size:
-                    ax.plot(flexion_deg[rows], values[rows, c], linestyle='none', marker='x',
-                            markersize=7, markeredgewidth=2.0, color=MARKER_RGB, zorder=5)
-            ax.set_ylabel(ylabel)
-            label = body if body_frame == body else f'{body} ({body_frame})'
-            label += f': {name}' + (f', {marked} not converged' if marked and j == 0 else '')
-            ax.set_title(label, fontsize=10)
-            ax.grid(True, linewidth=0.5, alpha=0.5)
-            if b == n_bodies - 1:
-                ax.set_xlabel('flexion [deg]')
+        marked_total += int(bad.sum())
+        _body_row(grid[b], table, b, flexion_deg, series, columns, bad,
+                  last=b == n_bodies - 1)
 
     handles = [Line2D([], [], color=_CURVE_COLOURS[k % len(_CURVE_COLOURS)], linewidth=1.5,
                       label=label) for k, (_, label) in enumerate(columns)]
@@ -143,6 +124,34 @@ def plot_table(table: PoseTable, out: Path, *, varus_deg: Sequence[float] | None
              table_name(table), n_bodies, len(columns), marked_total)
     return write_png(fig, out, {PNG_KEY_NONCONVERGED: str(marked_total),
                                 PNG_KEY_TABLE: table_name(table)})
+
+
+def _body_row(row: Sequence[Axes], table: PoseTable, b: int, flexion_deg: Floats,
+              series: Sequence[Floats], columns: list[tuple[int, str]], bad: Bools, *,
+              last: bool) -> None:
+    """plot_table's four panels of body `b`: x, y, z, rotation against flexion, one curve
+    per varus column, non-converged cells as red crosses."""
+    frame = table.reference_frame
+    body, body_frame = table.bodies[b], table.body_frames[b]
+    ylabels = (f'x ({frame}) [mm]', f'y ({frame}) [mm]', f'z ({frame}) [mm]',
+               'rotation about long axis [deg]')
+    marked = int(bad.sum())
+    for j, (values, ylabel, name) in enumerate(zip(series, ylabels, ('x', 'y', 'z', 'rotation'))):
+        ax = row[j]
+        for k, (c, _) in enumerate(columns):
+            ax.plot(flexion_deg, values[:, c], color=_CURVE_COLOURS[k % len(_CURVE_COLOURS)],
+                    linewidth=1.5, marker='.', markersize=3)
+            rows = np.flatnonzero(bad[:, k])
+            if rows.size:
+                ax.plot(flexion_deg[rows], values[rows, c], linestyle='none', marker='x',
+                        markersize=7, markeredgewidth=2.0, color=MARKER_RGB, zorder=5)
+        ax.set_ylabel(ylabel)
+        label = body if body_frame == body else f'{body} ({body_frame})'
+        label += f': {name}' + (f', {marked} not converged' if marked and j == 0 else '')
+        ax.set_title(label, fontsize=10)
+        ax.grid(True, linewidth=0.5, alpha=0.5)
+        if last:
+            ax.set_xlabel('flexion [deg]')
 
 
 _REASON_COLOURS = ('tab:red', 'tab:orange', 'tab:purple', 'tab:brown', 'tab:pink', 'tab:olive',
@@ -183,25 +192,13 @@ def plot_convergence_map(table: PoseTable, out: Path) -> Path:
     fig = Figure(figsize=(4.5 * n, 6.5), dpi=DPI, layout='constrained')
     FigureCanvasAgg(fig)
     axs = fig.subplots(1, n, squeeze=False)[0]
-    half_f = 0.5 * (np.diff(flexion_deg).min() if flexion_deg.size > 1 else 1.0)
-    half_v = 0.5 * (np.diff(varus_deg).min() if varus_deg.size > 1 else 1.0)
     total = 0
     for b, (ax, body) in enumerate(zip(axs, table.bodies)):
-        ax.add_patch(Rectangle((varus_deg[0] - half_v, flexion_deg[0] - half_f),
-                               varus_deg[-1] - varus_deg[0] + 2 * half_v,
-                               flexion_deg[-1] - flexion_deg[0] + 2 * half_f,
-                               facecolor='0.93', edgecolor='0.6'))
-        for (i, j), reason in cells[b].items():
-            ax.add_patch(Rectangle((varus_deg[j] - half_v, flexion_deg[i] - half_f),
-                                   2 * half_v, 2 * half_f, facecolor=colour[reason],
-                                   edgecolor='none'))
+        _map_panel(ax, flexion_deg, varus_deg, cells[b], colour)
         missed = int((~converged[b]).sum())
         total += missed
         share = 100.0 * converged[b].mean()
         ax.set_title(f'{body}: {share:.1f}% converged ({missed} not)', fontsize=10)
-        ax.set_xlim(varus_deg[0] - half_v, varus_deg[-1] + half_v)
-        ax.set_ylim(flexion_deg[0] - half_f, flexion_deg[-1] + half_f)
-        ax.set_xlabel('varus [deg]')
         if b == 0:
             ax.set_ylabel('flexion [deg]')
     counts = {r: sum(1 for c in cells for v in c.values() if v == r) for r in reasons}
@@ -220,6 +217,24 @@ def checked_png_path(out: Path) -> Path:
         raise ConfigError(f'out={str(path)!r} does not end in .png; the picture is a PNG, '
                           'give a path such as table.png')
     return path
+
+
+def _map_panel(ax: Axes, flexion_deg: Floats, varus_deg: Floats,
+               cells: dict[tuple[int, int], str], colour: dict[str, str]) -> None:
+    """One body's convergence map: the grid pale, each listed cell in its status's colour."""
+    half_f = 0.5 * (np.diff(flexion_deg).min() if flexion_deg.size > 1 else 1.0)
+    half_v = 0.5 * (np.diff(varus_deg).min() if varus_deg.size > 1 else 1.0)
+    ax.add_patch(Rectangle((varus_deg[0] - half_v, flexion_deg[0] - half_f),
+                           varus_deg[-1] - varus_deg[0] + 2 * half_v,
+                           flexion_deg[-1] - flexion_deg[0] + 2 * half_f,
+                           facecolor='0.93', edgecolor='0.6'))
+    for (i, j), reason in cells.items():
+        ax.add_patch(Rectangle((varus_deg[j] - half_v, flexion_deg[i] - half_f),
+                               2 * half_v, 2 * half_f, facecolor=colour[reason],
+                               edgecolor='none'))
+    ax.set_xlim(varus_deg[0] - half_v, varus_deg[-1] + half_v)
+    ax.set_ylim(flexion_deg[0] - half_f, flexion_deg[-1] + half_f)
+    ax.set_xlabel('varus [deg]')
 
 
 _XYZ_COLOURS = ('tab:blue', 'tab:orange', 'tab:green')

@@ -15,6 +15,7 @@ from pathlib import Path
 import time
 from typing import Literal
 
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
@@ -88,32 +89,54 @@ def render_table(table: PoseTable, meshes: Mapping[str, trimesh.Trimesh], out: P
     v_col = int(np.argmin(np.abs(grid_varus_deg)))
     angles = _flexion_angles(grid_flexion_deg, flexion_deg)
 
-    knee = table.axes
-    toward = knee.flexion if view == 'lateral' else knee.varus     # points at the viewer
-    up = unit(knee.long - (knee.long @ toward) * toward, 'long axis')
-    right = np.cross(up, toward)
-    light = unit(toward + 0.5 * up + 0.3 * right, 'light')
+    toward, up, right, light = _view(table, view)
     screen = np.stack([right, up])                                  # (2, 3)
-
     names = (reference, *table.bodies)
     colours = (_REFERENCE_RGB, *(_BODY_RGB[i % len(_BODY_RGB)] for i in range(len(names) - 1)))
     simple = [_simplified(meshes[name], RENDER_MAX_FACES) for name in names]
-
     panels = []
     for angle_deg, node in angles:
         poses, stale = _poses_at(table, angle_deg, node, v_col, grid_varus_deg[v_col])
         polys, rgb = _project(simple, colours, poses, toward, screen, light)
         panels.append((angle_deg, polys, rgb, stale))
-    corners = np.concatenate([p.reshape(-1, 2) for _, p, _, _ in panels])
-    lo, hi = corners.min(axis=0), corners.max(axis=0)
-    pad = 0.05 * float((hi - lo).max())
-
     n = len(panels)
     fig = Figure(figsize=(n * RENDER_PANEL_IN[0], RENDER_PANEL_IN[1] + RENDER_EXTRA_IN),
                  dpi=DPI, layout='constrained')
     FigureCanvasAgg(fig)
-    axs = fig.subplots(1, n, squeeze=False)[0]
-    frame = table.reference_frame
+    stale_total = _draw_panels(fig.subplots(1, n, squeeze=False)[0], panels,
+                               (_direction_name(right, table.reference_frame),
+                                _direction_name(up, table.reference_frame)))
+    handles = [Patch(facecolor=c, edgecolor='0.3',
+                     label=f'{name} (reference)' if name == reference else name)
+               for name, c in zip(names, colours)]
+    fig.legend(handles=handles, loc='outside lower center', ncol=len(handles))
+    fig.suptitle(f'{table_name(table)}: {view} view, varus {grid_varus_deg[v_col]:.1f}°')
+    path = write_png(fig, out, {PNG_KEY_NONCONVERGED: str(stale_total),
+                                PNG_KEY_TABLE: table_name(table)})
+    log.info('render of %s: %d panels, %s view, %.2f s', table_name(table), n, view,
+             time.perf_counter() - started)
+    return path
+
+
+def _view(table: PoseTable, view: str) -> tuple[Floats, Floats, Floats, Floats]:
+    """(toward the viewer, screen up, screen right, light) unit vectors, reference frame:
+    'lateral' looks along the flexion axis, 'anterior' along the varus axis; up is the
+    long axis."""
+    knee = table.axes
+    toward = knee.flexion if view == 'lateral' else knee.varus     # points at the viewer
+    up = unit(knee.long - (knee.long @ toward) * toward, 'long axis')
+    right = np.cross(up, toward)
+    light = unit(toward + 0.5 * up + 0.3 * right, 'light')
+    return toward, up, right, light
+
+
+def _draw_panels(axs: Sequence[Axes], panels: list[tuple[float, Floats, Floats, list[str]]],
+                 labels: tuple[str, str]) -> int:
+    """Draw each (angle, polygons, colours, non-converged bodies) panel with common limits;
+    returns how many bodies were drawn from non-converged cells."""
+    corners = np.concatenate([p.reshape(-1, 2) for _, p, _, _ in panels])
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    pad = 0.05 * float((hi - lo).max())
     stale_total = 0
     for i, (ax, (angle_deg, polys, rgb, stale)) in enumerate(zip(axs, panels)):
         ax.add_collection(PolyCollection(polys, facecolors=rgb, edgecolors=rgb,
@@ -126,20 +149,11 @@ def render_table(table: PoseTable, meshes: Mapping[str, trimesh.Trimesh], out: P
             label += '\nnot converged: ' + ', '.join(stale)
         stale_total += len(stale)
         ax.set_title(label, fontsize=10)
-        ax.set_xlabel(f'{_direction_name(right, frame)} [mm]')
+        ax.set_xlabel(f'{labels[0]} [mm]')
         if i == 0:
-            ax.set_ylabel(f'{_direction_name(up, frame)} [mm]')
+            ax.set_ylabel(f'{labels[1]} [mm]')
         ax.tick_params(labelsize=8)
-    handles = [Patch(facecolor=c, edgecolor='0.3',
-                     label=f'{name} (reference)' if name == reference else name)
-               for name, c in zip(names, colours)]
-    fig.legend(handles=handles, loc='outside lower center', ncol=len(handles))
-    fig.suptitle(f'{table_name(table)}: {view} view, varus {grid_varus_deg[v_col]:.1f}°')
-    path = write_png(fig, out, {PNG_KEY_NONCONVERGED: str(stale_total),
-                                PNG_KEY_TABLE: table_name(table)})
-    log.info('render of %s: %d panels, %s view, %.2f s', table_name(table), n, view,
-             time.perf_counter() - started)
-    return path
+    return stale_total
 
 
 def _flexion_angles(grid_deg: Floats, requested: Sequence[float] | None

@@ -109,9 +109,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_kinematics(args: argparse.Namespace) -> int:
-    from .kinematics import (DEFAULT_ANGLES_DEG, kinematics_markdown, knee_kinematics,
-                             plot_kinematics, read_reference, table_landmarks,
-                             write_kinematics_csv, write_text)
+    from .kinematics import DEFAULT_ANGLES_DEG, knee_kinematics, table_landmarks
+    from .kinematics_report import (kinematics_markdown, plot_kinematics, read_reference,
+                                    write_kinematics_csv, write_text)
     table = read_table(args.table)
     names = dict(tibia=args.tibia, patella=args.patella)
     marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,

@@ -111,6 +111,39 @@ def read_table(path: Path, meshes: dict[str, Any] | None = None) -> PoseTable:
     """
     path = Path(path)
     where = f'table file {path}'
+    meta, loaded = _load(path, where)
+    check_metadata(meta, where)
+    stored = meta.get('arrays_sha256')
+    if not isinstance(stored, str):
+        raise TableError(f'{where}: metadata has no arrays_sha256; {REBUILD}')
+    nbodies = len(meta['bodies'])
+    for name in ('position', 'orientation', 'converged', 'iterations'):
+        if loaded[name].ndim < 1 or loaded[name].shape[0] != nbodies:
+            raise TableError(f'{where}: array {name!r} has shape {loaded[name].shape} but the '
+                             f'metadata lists {nbodies} bodies; {REBUILD}')
+    arrays = check_arrays(loaded, nbodies, where)
+    actual = hash_arrays(arrays)
+    if actual != stored:
+        raise TableError(f'{where}: arrays do not match their SHA-256 (stored {stored[:12]}, '
+                         f'computed {actual[:12]}): corrupt or modified; {REBUILD}')
+    if meshes:
+        check_meshes(meta, meshes, where)
+    for a in arrays.values():
+        a.flags.writeable = False
+    table = PoseTable(arrays['flexion'], arrays['varus'], arrays['position'],
+                      arrays['orientation'], arrays['converged'], arrays['iterations'], meta)
+    table.prepare()
+    return table
+
+
+def _load(path: Path, where: str) -> tuple[Any, dict[str, np.ndarray]]:
+    """The metadata (parsed JSON, schema checked) and the six arrays of the file at `path`,
+    as stored (their kinds, shapes and values are checked by the caller).
+
+    Raises:
+        TableError: missing, not a file, unreadable, not an .npz, no or bad metadata, an
+            unknown schema, arrays missing or unexpected.
+    """
     if not path.exists():
         raise TableError(f'{where} not found; check the path or build one with '
                          '`kneeseat build`')
@@ -147,29 +180,7 @@ def read_table(path: Path, meshes: dict[str, Any] | None = None) -> PoseTable:
             what = '; '.join(([f'missing {", ".join(missing)}'] if missing else [])
                              + ([f'unexpected {", ".join(extra)}'] if extra else []))
             raise TableError(f'{where}: arrays {what}; not a {SCHEMA} table; {REBUILD}')
-        loaded = {n: _read_member(npz, n, where) for n in ARRAY_NAMES}
-    check_metadata(meta, where)
-    stored = meta.get('arrays_sha256')
-    if not isinstance(stored, str):
-        raise TableError(f'{where}: metadata has no arrays_sha256; {REBUILD}')
-    nbodies = len(meta['bodies'])
-    for name in ('position', 'orientation', 'converged', 'iterations'):
-        if loaded[name].ndim < 1 or loaded[name].shape[0] != nbodies:
-            raise TableError(f'{where}: array {name!r} has shape {loaded[name].shape} but the '
-                             f'metadata lists {nbodies} bodies; {REBUILD}')
-    arrays = check_arrays(loaded, nbodies, where)
-    actual = hash_arrays(arrays)
-    if actual != stored:
-        raise TableError(f'{where}: arrays do not match their SHA-256 (stored {stored[:12]}, '
-                         f'computed {actual[:12]}): corrupt or modified; {REBUILD}')
-    if meshes:
-        check_meshes(meta, meshes, where)
-    for a in arrays.values():
-        a.flags.writeable = False
-    table = PoseTable(arrays['flexion'], arrays['varus'], arrays['position'],
-                      arrays['orientation'], arrays['converged'], arrays['iterations'], meta)
-    table.prepare()
-    return table
+        return meta, {n: _read_member(npz, n, where) for n in ARRAY_NAMES}
 
 
 def _read_member(npz: Any, name: str, where: str) -> np.ndarray:

@@ -16,8 +16,8 @@ import pytest
 from kneeseat_core.cli import main
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import quat_from_matrix, rotation_about
-from kneeseat_core.kinematics import (kinematics_markdown, knee_kinematics, Landmarks,
-                                      landmarks, plot_kinematics, read_reference)
+from kneeseat_core.kinematics import knee_kinematics, Landmarks, landmarks
+from kneeseat_core.kinematics_report import kinematics_markdown, plot_kinematics, read_reference
 from kneeseat_core.table import PoseTable
 from kneeseat_core.table_format import SCHEMA
 from kneeseat_core.table_io import write_table
