@@ -11,7 +11,7 @@ scene is submitted, the executor reads the scene's mesh files on the client, che
 against the SHA-256 in the `SceneSpec`, and registers a `MeshShipment` worker plugin that
 carries the bytes. The scheduler hands the plugin to every worker once (and to every worker
 that joins later, e.g. a restarted one); each worker writes the bytes under its local
-directory as `<sha256>.<ext>` and registers the copy with `sweep.register_mesh_copy`, so
+directory as `<sha256>.<ext>` and registers the copy with `scene.register_mesh_copy`, so
 `scene_bodies` builds the rigid bodies from it even where the client's paths do not exist.
 Tasks themselves carry only the small `ChainJob`.
 
@@ -38,7 +38,8 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from . import kneeseat_version
 from .errors import ConfigError, KneeseatError, MeshError
 from .files import file_sha256, write_bytes
-from .sweep import ChainJob, register_mesh_copy, scene_builds, SceneSpec
+from .scene import register_mesh_copy, scene_builds, SceneSpec
+from .sweep import ChainJob
 
 __all__ = ['DaskExecutor', 'MeshShipment', 'dask_executor', 'worker_stats',
            'CONNECT_TIMEOUT_S', 'WORKERS_TIMEOUT_S', 'RETRIES']
@@ -64,7 +65,7 @@ def worker_stats() -> dict[str, int]:
         meshes_received: mesh payloads handed to this worker by `MeshShipment` plugins;
         bytes_received: their total size; files_written: copies written to disk (a payload
         already on disk is not written again); scene_builds: scenes built from meshes
-        (`sweep.scene_bodies`); chains_run: `run_chain` tasks finished here; pid.
+        (`scene.scene_bodies`); chains_run: `run_chain` tasks finished here; pid.
     """
     return {'meshes_received': _RECEIVED['meshes'], 'bytes_received': _RECEIVED['bytes'],
             'files_written': _RECEIVED['written'], 'scene_builds': scene_builds(),
