@@ -17,12 +17,12 @@ mid-write leaves a file without its summary; `kneeseat_ros.recovery.recover` rew
 readable message into a new, complete bag (`python -m kneeseat_ros.recorder recover BAG`).
 
 The well-known MCAP names (profile, encodings) come from `mcap.well_known`. Messages are
-CDR bytes: the node's own (`kneeseat_ros.cdr`) or `msgdefs.serialize` for message objects
-(why not rclpy's or mcap-ros2-support's serialiser: `kneeseat_ros.msgdefs`).
+CDR bytes: the node's own, or `cdr.serialize` for message objects (why not rclpy's or
+mcap-ros2-support's serialiser: `kneeseat_ros.cdr`). What a bag stores about a topic
+(definition, type hash, offered QoS) is `msgdefs.TopicSpec`.
 """
 from __future__ import annotations
 
-import argparse
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -37,14 +37,13 @@ from mcap.writer import __version__ as MCAP_VERSION, CompressionType, IndexType,
 from rclpy.qos import QoSProfile
 import yaml
 
-from kneeseat_core.errors import ConfigError, KneeseatError
+from kneeseat_core.errors import ConfigError
 from kneeseat_core.files import write_bytes
-from .errors import MessageTypeError, RecorderError
-from .msgdefs import message_definition, serialize, type_hash
+from .cdr import serialize
+from .errors import RecorderError
+from .msgdefs import topic_spec, TopicSpec
 
-__all__ = ['BagRecorder', 'TopicSpec', 'qos_to_dicts', 'topic_spec', 'session_directory',
-           'open_session',
-           'DEFAULT_QOS', 'METADATA_NAME']
+__all__ = ['BagRecorder', 'session_directory', 'open_session', 'METADATA_NAME']
 
 PROFILE = Profile.ROS2                      # 'ros2'
 SCHEMA_ENCODING = SchemaEncoding.ROS2       # 'ros2msg'
@@ -54,47 +53,10 @@ LIBRARY = f'kneeseat_ros.recorder; mcap-python/{MCAP_VERSION}'
 BAG_VERSION = 9
 CHUNK_SIZE_BYTES = 768 * 1024      # rosbag2's default MCAP chunk size
 MESSAGE_RECORD_OVERHEAD = 31       # opcode, length, channel, sequence, two stamps (bytes)
-DEFAULT_QOS = QoSProfile(depth=10)  # rclpy's default publisher QoS
-
-
-def _duration_dict(ns: int) -> dict[str, int]:
-    return {'sec': ns // 1_000_000_000, 'nsec': ns % 1_000_000_000}
-
-
-def qos_to_dicts(qos: QoSProfile) -> list[dict[str, Any]]:
-    """The offered QoS of one publisher as rosbag2 Jazzy (metadata v9) writes it.
-
-    Returns:
-        A one-element list (rosbag2 stores one entry per publisher) of a dict with string
-        policy names (`keep_last`, `reliable`, `volatile`, `automatic`, ...) and durations
-        as `{sec, nsec}`.
-    """
-    return [{
-        'history': qos.history.name.lower(),
-        'depth': int(qos.depth),
-        'reliability': qos.reliability.name.lower(),
-        'durability': qos.durability.name.lower(),
-        'deadline': _duration_dict(qos.deadline.nanoseconds),
-        'lifespan': _duration_dict(qos.lifespan.nanoseconds),
-        'liveliness': qos.liveliness.name.lower(),
-        'liveliness_lease_duration': _duration_dict(qos.liveliness_lease_duration.nanoseconds),
-        'avoid_ros_namespace_conventions': bool(qos.avoid_ros_namespace_conventions),
-    }]
 
 
 def _yaml(data: Any) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
-
-
-@dataclass(frozen=True, slots=True)
-class TopicSpec:
-    """Everything a bag stores about one topic."""
-
-    topic: str
-    msg_type: str                   # 'pkg/msg/Type'
-    definition: str                 # ros2msg schema text, dependencies included
-    type_hash: str                  # 'RIHS01_...', '' if unknown
-    qos: tuple[dict[str, Any], ...]  # offered QoS profiles (v9 dicts)
 
 
 @dataclass(slots=True)
@@ -115,23 +77,6 @@ class _OpenFile:
     last_tell: int = 0
     pending_bytes: int = 0         # uncompressed bytes in the open chunk (estimate)
     last_flush_ns: int = -1
-
-
-def topic_spec(topic: str, msg_type: str, qos: QoSProfile | None = None) -> TopicSpec:
-    """Everything a bag stores about one topic, from the installed message package.
-
-    Args:
-        topic: the topic name, e.g. '/knee/pose'.
-        msg_type: like 'geometry_msgs/msg/PoseStamped'.
-        qos: the QoS offered by its publisher (rclpy's default profile if None).
-    Raises:
-        RecorderError: the type's definition or hash cannot be found.
-    """
-    try:
-        return TopicSpec(topic, msg_type, message_definition(msg_type), type_hash(msg_type),
-                         tuple(qos_to_dicts(qos if qos is not None else DEFAULT_QOS)))
-    except MessageTypeError as err:
-        raise RecorderError(f'cannot record {topic}: {err}') from None
 
 
 def session_directory(base: Path, now_ns: int) -> Path:
@@ -292,7 +237,7 @@ class BagRecorder:
                 self._guard(self._register, self._open, spec)
 
     def write(self, topic: str, message: Any, log_time_ns: int, publish_time_ns: int) -> None:
-        """Serialise an rclpy message (CDR, see `msgdefs.serialize`) and append it.
+        """Serialise an rclpy message (CDR, see `cdr.serialize`) and append it.
 
         Never raises on an I/O error: sets `error`, stops writing and returns.
 
@@ -463,27 +408,6 @@ class BagRecorder:
                     _yaml({'rosbag2_bagfile_information': info}).encode('utf-8'))
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m kneeseat_ros.recorder recover BAG [--output DIR]`."""
-    parser = argparse.ArgumentParser(prog='python -m kneeseat_ros.recorder',
-                                     description='Tools for kneeseat session bags.')
-    sub = parser.add_subparsers(dest='command', required=True)
-    rec = sub.add_parser('recover', help='rewrite the readable part of a crashed bag')
-    rec.add_argument('bag', type=Path, help='bag directory or .mcap file')
-    rec.add_argument('--output', type=Path, default=None,
-                     help='new bag directory (default: <bag>_recovered)')
-    args = parser.parse_args(argv)
-    from .recovery import recover      # recovery writes with BagRecorder: imported here
-    try:
-        report = recover(args.bag, args.output)
-    except KneeseatError as err:
-        print(f'recover: error: {err}', file=sys.stderr)
-        return 2
-    print(f'recovered {report.messages} messages from {report.files_read} file(s) into '
-          f'{report.output}' + (f' (damaged: {", ".join(report.damaged)})'
-                                if report.damaged else ''))
-    return 0
-
-
-if __name__ == '__main__':
+if __name__ == '__main__':        # `python -m kneeseat_ros.recorder recover BAG`
+    from .recovery import main
     sys.exit(main())

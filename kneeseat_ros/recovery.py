@@ -7,20 +7,23 @@ message into a new, complete bag (`python -m kneeseat_ros.recorder recover BAG`)
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
+import argparse
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 import re
+import sys
 
 from mcap.exceptions import McapError
 from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 import yaml
 
+from kneeseat_core.errors import KneeseatError
 from .errors import RecorderError
 from .recorder import BagRecorder, METADATA_NAME, TopicSpec
 
-__all__ = ['ReadableContent', 'read_readable', 'RecoveryReport', 'recover']
+__all__ = ['ReadableContent', 'read_readable', 'RecoveryReport', 'recover', 'main']
 
 _SPLIT_RE = re.compile(r'_(\d+)\.mcap$')
 
@@ -142,3 +145,24 @@ def recover(bag: Path, output: Path | None = None) -> RecoveryReport:
     if recorder.error is not None:
         raise RecorderError(recorder.error)
     return RecoveryReport(output, recorder.message_count, len(inputs), tuple(damaged))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m kneeseat_ros.recorder recover BAG [--output DIR]`."""
+    parser = argparse.ArgumentParser(prog='python -m kneeseat_ros.recorder',
+                                     description='Tools for kneeseat session bags.')
+    sub = parser.add_subparsers(dest='command', required=True)
+    rec = sub.add_parser('recover', help='rewrite the readable part of a crashed bag')
+    rec.add_argument('bag', type=Path, help='bag directory or .mcap file')
+    rec.add_argument('--output', type=Path, default=None,
+                     help='new bag directory (default: <bag>_recovered)')
+    args = parser.parse_args(argv)
+    try:
+        report = recover(args.bag, args.output)
+    except KneeseatError as err:
+        print(f'recover: error: {err}', file=sys.stderr)
+        return 2
+    print(f'recovered {report.messages} messages from {report.files_read} file(s) into '
+          f'{report.output}' + (f' (damaged: {", ".join(report.damaged)})'
+                                if report.damaged else ''))
+    return 0
