@@ -28,6 +28,7 @@ from typing import Sequence
 import fcl
 import numpy as np
 from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
 import trimesh
 
 from .typed import Floats, Pose
@@ -132,10 +133,7 @@ class Referee:
         """`base` slid by state[0] a + state[1] b and spun by state[2] / arm about the push."""
         u, v, w = np.asarray(state, dtype=np.float64) * self._free
         centre = base[:3, :3] @ self._centroid + base[:3, 3]
-        k = self.push
-        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-        phi = w / arm
-        rot = np.eye(3) + math.sin(phi) * kx + (1.0 - math.cos(phi)) * (kx @ kx)
+        rot = Rotation.from_rotvec((w / arm) * self.push).as_matrix()
         out = np.eye(4)
         out[:3, :3] = rot @ base[:3, :3]
         out[:3, 3] = rot @ (base[:3, 3] - centre) + centre + u * self._a + v * self._b

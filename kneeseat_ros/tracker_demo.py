@@ -35,10 +35,11 @@ from typing import Any
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
+from scipy.spatial.transform import Rotation
 import yaml
 
 from kneeseat_core.errors import KneeseatError
-from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_about
+from kneeseat_core.geometry import KneeAxes
 from kneeseat_core.plots import write_png
 from kneeseat_core.table import PoseTable
 from kneeseat_core.table_io import read_table
@@ -57,13 +58,20 @@ MAX_ERROR = 1e-9
 def pose_matrix(position: Sequence[float], quat_xyzw: Sequence[float]) -> Floats:
     """(4, 4) pose from a position (m) and a quaternion (x, y, z, w)."""
     out = np.eye(4)
-    out[:3, :3] = matrix_from_quat(np.asarray(quat_xyzw, dtype=np.float64))
+    out[:3, :3] = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix()
     out[:3, 3] = position
     return out
 
 
+def _quat(rotation: Floats) -> Floats:
+    """(x, y, z, w), w >= 0, of a (3, 3) rotation."""
+    return np.asarray(Rotation.from_matrix(rotation).as_quat(canonical=True))
+
+
 def _rot(axis: Sequence[float], angle: float | Floats) -> Floats:
-    return rotation_about(np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis), angle)
+    """Rotations (3, 3) or (n, 3, 3) about `axis` by `angle` (rad, scalar or (n,))."""
+    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    return Rotation.from_rotvec(np.multiply.outer(angle, k)).as_matrix()
 
 
 def leg_motion(axes: KneeAxes, n: int, duration_s: float = 4.0,
@@ -116,7 +124,7 @@ def registration_yaml(femur: Floats, tibia: Floats) -> str:
     """The registration file's text for two (4, 4) cluster -> bone poses."""
     def entry(m: Floats) -> dict[str, list[float]]:
         return {'translation': [float(v) for v in m[:3, 3]],
-                'rotation': [float(v) for v in quat_from_matrix(m[:3, :3])]}
+                'rotation': [float(v) for v in _quat(m[:3, :3])]}
     return yaml.safe_dump({'femur': entry(femur), 'tibia': entry(tibia)}, sort_keys=False)
 
 
@@ -139,7 +147,7 @@ def _pose_error(got: Any, want: Floats) -> tuple[float, float]:
     """(position error m, largest quaternion component error up to sign) of a PoseStamped."""
     p, o = got.pose.position, got.pose.orientation
     q = np.array([o.x, o.y, o.z, o.w])
-    qw = quat_from_matrix(want[:3, :3])
+    qw = _quat(want[:3, :3])
     return (float(np.abs(np.array([p.x, p.y, p.z]) - want[:3, 3]).max()),
             float(min(np.abs(q - qw).max(), np.abs(q + qw).max())))
 
@@ -224,7 +232,7 @@ class _Tracker:
         from kneeseat_ros.conversions import pose_stamped, stamp_from_ns
         stamp = stamp_from_ns(stamp_ns_)
         for pub, m in zip(self.pubs, (self.walk.femur_cluster[k], self.walk.tibia_cluster[k])):
-            pub.publish(pose_stamped(m[:3, 3], quat_from_matrix(m[:3, :3]), stamp, 'world'))
+            pub.publish(pose_stamped(m[:3, 3], _quat(m[:3, :3]), stamp, 'world'))
 
     def warm_up(self) -> None:
         """Wait for discovery; the first best-effort samples after it can be lost, so send
