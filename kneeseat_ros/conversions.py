@@ -68,9 +68,10 @@ def quat_xyzw(msg: Pose) -> tuple[float, float, float, float]:
 class AttitudeDecoder:
     """(flexion, varus) of a unit quaternion with a table's axes, in plain Python floats.
 
-    Same result as `KneeAxes.decompose(matrix_from_quat(q))[:2]` (to rounding), about ten
-    times faster for one message: only the third column of `B.T @ R @ B` is needed, where B
-    is the right-handed basis [flexion, varus, +-long] of `KneeAxes`.
+    Same result as `KneeAxes.decompose(matrix_from_quat(q))[:2]` (to rounding), written out
+    for one message: only the third column of `B.T @ R @ B` is needed, where B is the
+    right-handed basis [flexion, varus, +-long] of `KneeAxes`. Measured: 1.3 us, against
+    55 us through `decompose(matrix_from_quat(q))` and 42 us through scipy's `Rotation`.
     """
 
     __slots__ = ('_b0', '_b1', '_b2')

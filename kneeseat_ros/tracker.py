@@ -11,8 +11,10 @@ in the cluster's frame. With them the node computes
     world_T_body = world_T_femur * table(flexion, varus)[body]        for every moving body
 
 Rigid transforms are tuples `(px, py, pz, qx, qy, qz, qw)` (metres, unit quaternion) in
-plain Python floats: one message needs a handful of them and numpy's call overhead is
-larger than the arithmetic.
+plain Python floats, composed by hand: one message needs a handful of them, and library
+call overhead is far larger than the arithmetic (measured on the dev machine: `compose`
+1.0 us against 43 us with scipy's `Rotation`, `relative_rotation` 0.5 us against 40 us;
+the node answers up to 2 kHz).
 
 Registration file (YAML), one entry per role, each either a quaternion and a translation or
 a 4 x 4 homogeneous matrix (rows), metres:
