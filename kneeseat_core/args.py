@@ -8,12 +8,15 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterable, Sequence
 import math
-from typing import NoReturn
+from typing import NoReturn, TYPE_CHECKING
 
-__all__ = ['EXIT_OK', 'EXIT_ERROR', 'EXIT_BAD_INPUT', 'EXIT_NOT_CONVERGED', 'EXIT_NO_CONTACT',
-           'OneLineParser', 'vector3', 'angles', 'join_negative_values']
+__all__ = ['EXIT_OK', 'EXIT_ERROR', 'EXIT_BAD_INPUT', 'EXIT_NOT_CONVERGED',
+           'EXIT_NO_CONTACT', 'OneLineParser', 'vector3', 'angles', 'join_negative_values']
 
 EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_NO_CONTACT = 0, 1, 2, 3, 4
+
+if TYPE_CHECKING:       # what `add_subparsers` returns; the class is private to argparse
+    Subcommands = argparse._SubParsersAction['OneLineParser']
 
 
 class OneLineParser(argparse.ArgumentParser):

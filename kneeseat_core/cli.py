@@ -24,6 +24,7 @@ from .errors import KneeseatError, NoContactError, UsageError
 from .typed import Pose
 
 if TYPE_CHECKING:
+    from .args import Subcommands
     from .search import SettleResult
 
 __all__ = ['main', 'build_parser', 'load_start_pose']
@@ -118,7 +119,7 @@ def _cmd_settle(args: argparse.Namespace) -> int:
     return EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
-def _register_settle(sub: Any) -> None:
+def _register_settle(sub: Subcommands) -> None:
     """Add `settle` to the `kneeseat` subcommand parser (defaults: `SettleParams`)."""
     from .settle import SettleParams
     d = SettleParams()

@@ -30,7 +30,7 @@ import os
 from pathlib import Path
 import re
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from distributed import Client, KilledWorker
 from distributed.diagnostics.plugin import WorkerPlugin
@@ -45,6 +45,8 @@ __all__ = ['DaskExecutor', 'MeshShipment', 'dask_executor', 'worker_stats',
            'CONNECT_TIMEOUT_S', 'WORKERS_TIMEOUT_S', 'RETRIES']
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar('_T')
 
 CONNECT_TIMEOUT_S = 10.0   # to reach the scheduler
 WORKERS_TIMEOUT_S = 60.0   # for at least one worker to be connected to it
@@ -116,16 +118,18 @@ class DaskExecutor(Executor):
 
     def __init__(self, client: Client, retries: int = RETRIES) -> None:
         self.client = client
+        assert client.scheduler is not None          # a connected client has one
         self.address = str(client.scheduler.address)
         self._inner = client.get_executor(retries=retries, pure=False)
         self._plugins: dict[tuple[str, ...], str] = {}
         self._lock = threading.Lock()
 
-    def submit(self, fn: Callable, /, *args: Any, **kwargs: Any) -> Future:  # type: ignore
+    def submit(self, fn: Callable[..., _T], /, *args: Any,
+               **kwargs: Any) -> Future[_T]:
         """Run `fn(*args, **kwargs)` on the cluster; ship the meshes of any `ChainJob` first."""
         args = tuple(self._with_meshes(a) if isinstance(a, ChainJob) else a for a in args)
         inner = self._inner.submit(fn, *args, **kwargs)
-        outer: Future = Future()
+        outer: Future[_T] = Future()
         outer.add_done_callback(lambda done: done.cancelled() and inner.cancel())
         inner.add_done_callback(lambda done: _forward(done, outer, self.address))
         return outer
@@ -188,7 +192,7 @@ class DaskExecutor(Executor):
         return job
 
 
-def _forward(inner: Future, outer: Future, address: str) -> None:
+def _forward(inner: Future[_T], outer: Future[_T], address: str) -> None:
     """Copy `inner`'s outcome to `outer`; a chain that kept killing workers -> KneeseatError."""
     if outer.done():              # cancelled by the caller
         return

@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from .errors import ConfigError
@@ -85,7 +86,7 @@ class Tolerances:
 TOL = Tolerances()
 
 
-def unit(vector: Floats, name: str = 'vector') -> Vec3:
+def unit(vector: ArrayLike, name: str = 'vector') -> Vec3:
     """Return `vector` (3,) scaled to unit length.
 
     Raises:
@@ -109,7 +110,8 @@ def rotation_about(axis: Vec3, angle_rad: float | Floats) -> Floats:
     a = np.asarray(angle_rad, dtype=np.float64)
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     s, c = np.sin(a)[..., None, None], np.cos(a)[..., None, None]
-    return np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+    out: Floats = np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+    return out
 
 
 def pose_from(rotation: Floats, translation: Floats) -> Pose:
@@ -144,7 +146,8 @@ def quat_from_matrix(rotation: Floats) -> Floats:
     pick = np.argmax(np.stack([m00, m11, m22, m00 + m11 + m22], -1), axis=-1)
     q = np.take_along_axis(cand, pick[..., None, None], axis=-2)[..., 0, :]
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:4] < 0.0, -q, q)
+    out: Floats = np.where(q[..., 3:4] < 0.0, -q, q)
+    return out
 
 
 def matrix_from_quat(quat_xyzw: Floats) -> Floats:
@@ -175,7 +178,7 @@ class KneeAxes:
     long: Vec3
 
     @classmethod
-    def from_vectors(cls, flexion: Floats, varus: Floats, long: Floats) -> KneeAxes:
+    def from_vectors(cls, flexion: ArrayLike, varus: ArrayLike, long: ArrayLike) -> KneeAxes:
         """Normalise and check three axes.
 
         Raises:

@@ -22,7 +22,8 @@ def min_norm_point(points: Floats) -> Floats:
     in finitely many steps; the active set is at most d + 1 points)."""
     sq = np.einsum('ij,ij->i', points, points)
     if len(points) == 1:
-        return points[0].copy()
+        first: Floats = points[0].copy()
+        return first
     scale = float(sq.max())
     active = [int(np.argmin(sq))]
     weights = np.array([1.0])
@@ -55,4 +56,5 @@ def min_norm_point(points: Floats) -> Floats:
             active = [a for a, k in zip(active, keep) if k]
             weights = weights[keep]
         x = weights @ points[active]
-    return x
+    out: Floats = x
+    return out

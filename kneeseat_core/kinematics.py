@@ -227,7 +227,7 @@ def knee_kinematics(table: PoseTable, marks: Landmarks, *,
         raise ConfigError(f'the table has neither {tibia!r} nor {patella!r} (bodies: '
                           f'{", ".join(names)}); name them with --tibia/--patella')
     rotations = [q for q in ('tibia_ie', 'patella_tilt', 'patella_spin') if q in values]
-    first = {q: float(values[q][0]) for q in rotations}
+    first: dict[str, float] = {q: float(values[q][0]) for q in rotations}
     values.update({q: _change(values[q]) for q in rotations})
     return KneeKinematics(knee, math.degrees(v0), values, flags, first)
 

@@ -84,7 +84,7 @@ def write_text(out: Path, text: str) -> Path:
     return Path(out)
 
 
-def read_reference(path: Path) -> list[dict[str, object]]:
+def read_reference(path: Path) -> list[dict[str, str | float]]:
     """Published values to draw beside a table's: CSV with columns source, quantity,
     knee_flexion_deg, value (quantity one of QUANTITIES); other columns are kept.
 
@@ -99,7 +99,7 @@ def read_reference(path: Path) -> list[dict[str, object]]:
     rows = list(csv.DictReader(line for line in text.splitlines()
                                if line.strip() and not line.startswith('#')))
     need = ('source', 'quantity', 'knee_flexion_deg', 'value')
-    out = []
+    out: list[dict[str, str | float]] = []
     for n, row in enumerate(rows, start=2):
         missing = [k for k in need if not row.get(k)]
         if missing:
@@ -121,7 +121,7 @@ _MARKERS = ('o', 's', '^', 'D', 'v', 'P', 'X', '<', '>', 'h')
 
 
 def plot_kinematics(kin: KneeKinematics, out: Path, *, title: str,
-                    reference: Sequence[Mapping[str, object]] = (),
+                    reference: Sequence[Mapping[str, str | float]] = (),
                     others: Mapping[str, KneeKinematics] | None = None) -> Path:
     """One panel per quantity against knee flexion; published values as markers.
 
@@ -157,7 +157,7 @@ def plot_kinematics(kin: KneeKinematics, out: Path, *, title: str,
                         label=f'{name} (converged cells)')
         for src in sources:
             pts = [(float(r['knee_flexion_deg']), float(r['value'])) for r in reference
-                   if r['source'] == src and r['quantity'] == q]    # type: ignore[arg-type]
+                   if r['source'] == src and r['quantity'] == q]
             if pts:
                 x, y = zip(*pts)
                 ax.plot(x, y, linestyle='none', marker=style[src], color='0.25', ms=5,

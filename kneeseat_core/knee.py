@@ -115,7 +115,8 @@ class KneeConfig:
 
     def push(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3,) unit push direction of `body` at a grid cell, reference frame."""
-        return self.push_turn(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+        push: Floats = self.push_turn(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+        return push
 
     def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
         """Settle parameters for `body` at a grid cell."""

@@ -46,7 +46,7 @@ def contact_patches(body: RigidBody, ids: Ints, points: Floats) -> tuple[Floats,
 PATCH_SPREAD_RAD = math.radians(12.0)
 
 
-def _interpolated_normals(body: RigidBody, ids: np.ndarray, points: Floats) -> Floats:
+def _interpolated_normals(body: RigidBody, ids: Ints, points: Floats) -> Floats:
     """Vertex normals of triangles `ids` interpolated (barycentric) at `points` (k, 3)."""
     tri = body.faces[ids]
     a, b, c = (body.vertices[tri[:, i]] for i in range(3))
@@ -65,10 +65,11 @@ def _interpolated_normals(body: RigidBody, ids: np.ndarray, points: Floats) -> F
     bad = length[:, 0] < TOL.normal_length
     n[bad] = body.normals[ids[bad]]
     length[bad] = 1.0
-    return n / length
+    out: Floats = n / length
+    return out
 
 
-def _components(body: RigidBody, ids: np.ndarray) -> np.ndarray:
+def _components(body: RigidBody, ids: Ints) -> Ints:
     """Label (k,) of the connected set of reference triangles each contact lies on."""
     unique, inverse = np.unique(ids, return_inverse=True)
     indptr, indices = body.adjacency

@@ -69,7 +69,8 @@ def _component_resultant(search: Search, contacts: Contacts) -> Floats:
         for part in (comp[comp > 0], comp[comp < 0]):
             if len(part):
                 total[axis] += part.mean()
-    return total[0] * search.e1 + total[1] * search.e2
+    out: Floats = total[0] * search.e1 + total[1] * search.e2
+    return out
 
 
 def run_patent(search: Search, bracket: Bracket) -> SettleResult:

@@ -13,7 +13,7 @@ import logging
 import math
 from pathlib import Path
 import time
-from typing import Literal
+from typing import cast, Literal
 
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -28,7 +28,7 @@ from .geometry import matrix_from_quat, TOL, unit
 from .plots import (checked_png_path, DPI, finite_angles, outside_grid, PNG_KEY_NONCONVERGED,
                     PNG_KEY_TABLE, table_name, write_png)
 from .table import PoseTable
-from .typed import Floats
+from .typed import Floats, Ints
 
 __all__ = ['RENDER_PANEL_IN', 'RENDER_EXTRA_IN', 'RENDER_MAX_FACES', 'RENDER_MAX_PANELS',
            'render_table']
@@ -139,8 +139,9 @@ def _draw_panels(axs: Sequence[Axes], panels: list[tuple[float, Floats, Floats, 
     pad = 0.05 * float((hi - lo).max())
     stale_total = 0
     for i, (ax, (angle_deg, polys, rgb, stale)) in enumerate(zip(axs, panels)):
-        ax.add_collection(PolyCollection(polys, facecolors=rgb, edgecolors=rgb,
-                                         linewidths=0.3))
+        # an (n, 3, 2) array is matplotlib's fast path for n triangles (its stub wants a list)
+        ax.add_collection(PolyCollection(cast(Sequence[Floats], polys), facecolors=rgb,
+                                         edgecolors=rgb, linewidths=0.3))
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         ax.set_aspect('equal', adjustable='box')
@@ -197,7 +198,7 @@ def _check_meshes(meshes: Mapping[str, trimesh.Trimesh], reference: str,
                               f'use the names {list(wanted)}')
 
 
-def _simplified(mesh: trimesh.Trimesh, max_faces: int) -> tuple[Floats, np.ndarray, bool]:
+def _simplified(mesh: trimesh.Trimesh, max_faces: int) -> tuple[Floats, Ints, bool]:
     """(vertices (n, 3) m, faces (m, 3) int, cull back faces) with at most `max_faces`.
 
     Vertex clustering: vertices in one cube of a uniform grid merge into their mean;
@@ -256,7 +257,7 @@ def _poses_at(table: PoseTable, angle_deg: float, node: int | None, v_col: int,
     return poses, stale
 
 
-def _project(meshes: Sequence[tuple[Floats, np.ndarray, bool]],
+def _project(meshes: Sequence[tuple[Floats, Ints, bool]],
              colours: Sequence[tuple[float, float, float]], poses: Sequence[Floats],
              toward: Floats, screen: Floats, light: Floats) -> tuple[Floats, Floats]:
     """Screen triangles (n, 3, 2) mm, far to near, and their shaded colours (n, 3)."""

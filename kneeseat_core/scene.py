@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import threading
 
 from .collision import RigidBody
-from .meshes import load_meshes
+from .meshes import load_meshes, Units
 
 __all__ = ['SceneSpec', 'scene_bodies', 'register_mesh_copy', 'scene_builds']
 
@@ -28,7 +28,7 @@ class SceneSpec:
 
     reference_mesh: str | tuple[str, ...]
     body_meshes: tuple[str | tuple[str, ...], ...]
-    units: str
+    units: Units
     mesh_sha256: tuple[str, ...] = ()   # hex, one per file of `paths()`; () = paths only
 
     def groups(self) -> tuple[tuple[str, ...], ...]:
@@ -77,7 +77,7 @@ def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
                 sources = [_mesh_source(spec, index + k, p) for k, p in enumerate(group)]
                 index += len(group)
                 bodies_list.append(RigidBody.from_mesh(
-                    load_meshes(sources, spec.units, quiet=True)))  # type: ignore[arg-type]
+                    load_meshes(sources, spec.units, quiet=True)))
             bodies = tuple(bodies_list)
             _SCENES.clear()          # one scene per worker at a time keeps memory flat
             _SCENES[spec] = (bodies[0], bodies[1:])

@@ -22,7 +22,8 @@ def smooth_max(parts: list[Floats], k: float) -> Floats:
     1/unit of the arrays)."""
     stack = np.stack(parts)
     top = stack.max(axis=0)
-    return top + np.log(np.exp(k * (stack - top)).sum(axis=0)) / k
+    out: Floats = top + np.log(np.exp(k * (stack - top)).sum(axis=0)) / k
+    return out
 
 
 def soft_cap(value: Floats, cap: Floats | float, k: float) -> Floats:

@@ -41,7 +41,7 @@ import multiprocessing
 import os
 from pathlib import Path
 import time
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, ParamSpec, Sequence, TypeVar
 
 import numpy as np
 
@@ -53,12 +53,15 @@ from .meshes import check_mesh_files
 from .scene import scene_bodies, SceneSpec
 from .settle import settle, SettleParams
 from .status import Status
-from .typed import Floats, Pose
+from .typed import Bools, Floats, Ints, Pose
 
 __all__ = ['ChainJob', 'ChainResult', 'SweepResult', 'InlineExecutor', 'run_chain', 'sweep',
            'default_workers', 'process_executor', 'carried', 'warm_start', 'cold_start']
 
 log = logging.getLogger(__name__)
+
+_P = ParamSpec('_P')
+_T = TypeVar('_T')
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -83,9 +86,9 @@ class ChainResult:
     body: int
     cells: tuple[tuple[int, int], ...]
     poses: Floats             # (n, 4, 4)
-    converged: Floats         # (n,) bool
-    iterations: Floats        # (n,) int
-    status: Floats            # (n,) int, `Status` codes
+    converged: Bools          # (n,)
+    iterations: Ints          # (n,)
+    status: Ints              # (n,) `Status` codes
     collision_checks: int
     reasons: tuple[str, ...]
     elapsed_s: float
@@ -158,9 +161,9 @@ class SweepResult:
 
     position_m: Floats          # (B, F, V, 3)
     orientation_xyzw: Floats    # (B, F, V, 4)
-    converged: Floats           # (B, F, V) bool
-    iterations: Floats          # (B, F, V) int
-    status: Floats              # (B, F, V) int8, `Status` codes
+    converged: Bools            # (B, F, V)
+    iterations: Ints            # (B, F, V)
+    status: Ints                # (B, F, V) int8, `Status` codes
     collision_checks: int
     wall_s: float
     mesh_sha256: tuple[str, ...]    # hex, of the mesh files swept (SceneSpec.paths order)
@@ -178,8 +181,10 @@ class SweepResult:
 class InlineExecutor(Executor):
     """A `concurrent.futures.Executor` that runs each task at submit time, in-process."""
 
-    def submit(self, fn: Callable, /, *args, **kwargs) -> Future:  # type: ignore[override]
-        future: Future = Future()
+    def submit(self, fn: Callable[_P, _T], /, *args: _P.args,
+               **kwargs: _P.kwargs) -> Future[_T]:
+        """Run `fn(*args, **kwargs)` now; its result or exception is in the future."""
+        future: Future[_T] = Future()
         try:
             future.set_result(fn(*args, **kwargs))
         except BaseException as err:  # noqa: B902 - handed to the caller via the future
@@ -211,7 +216,7 @@ def _outward(n: int, centre: int) -> tuple[list[int], list[int]]:
 
 
 def sweep(config: KneeConfig, executor: Executor,
-          progress: Callable[[int], None] | None = None) -> SweepResult:
+          progress: Callable[[int], object] | None = None) -> SweepResult:
     """Settle every (body, flexion, varus) cell of `config` on `executor`.
 
     Args:
@@ -232,7 +237,7 @@ def sweep(config: KneeConfig, executor: Executor,
 class _Sweep:
     """One sweep's cells in table layout, filled phase by phase (module docstring)."""
 
-    def __init__(self, config: KneeConfig, progress: Callable[[int], None] | None) -> None:
+    def __init__(self, config: KneeConfig, progress: Callable[[int], object] | None) -> None:
         self.config, self.progress = config, progress
         flex, var = config.flexion_rad, config.varus_rad
         nb, nf, nv = len(config.bodies), len(flex), len(var)

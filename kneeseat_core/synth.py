@@ -57,7 +57,7 @@ import trimesh
 
 from .files import file_sha256, write_bytes
 from .solids import polar_solid, smooth_max, smoothstep, soft_cap, superellipse_scale
-from .typed import Floats
+from .typed import Floats, Ints
 
 __all__ = ['DEFAULT_PUSH', 'PATELLA_FLEXION_FRACTION', 'default_knee', 'write_default_knee',
            'stl_bytes', 'NEUTRAL_GAP_MM', 'MEDIAL_CONDYLE_Z_MM', 'LATERAL_CONDYLE_Z_MM']
@@ -174,7 +174,7 @@ def femur_radius_mm(phi: Floats, z: Floats) -> Floats:
     return smooth_max([medial, lateral, core, trochlea, shaft], _SMOOTH_MAX_K)
 
 
-def _femur_mesh_mm() -> tuple[Floats, np.ndarray]:
+def _femur_mesh_mm() -> tuple[Floats, Ints]:
     """Vertices (n, 3) mm and faces (m, 3) of the femur tube with flat end caps."""
     z = np.linspace(*_FEMUR_Z_RANGE_MM, _FEMUR_N_Z)
     phi = np.linspace(-np.pi, np.pi, _FEMUR_N_PHI, endpoint=False)
@@ -206,7 +206,8 @@ def _circular_rise(u: Floats, radius: float) -> Floats:
     a = np.minimum(np.abs(u), limit)
     rise = radius - np.sqrt(radius * radius - a * a)
     slope = limit / np.sqrt(radius * radius - limit * limit)
-    return rise + slope * (np.abs(u) - a)
+    out: Floats = rise + slope * (np.abs(u) - a)
+    return out
 
 
 def _dish(x: Floats, z: Floats, centre: tuple[float, float, float],
@@ -234,10 +235,11 @@ def tibia_top_mm(x: Floats, z: Floats) -> Floats:
     base = _MED_DISH_MM[2] + _EMINENCE_HEIGHT_MM
     eminence = base - (base - plateau) * (1.0 - np.minimum(
         spines * np.exp(-x * x / (2 * sx * sx)), 1.0))
-    return np.maximum(plateau, eminence)
+    out: Floats = np.maximum(plateau, eminence)
+    return out
 
 
-def _tibia_mesh_mm() -> tuple[Floats, np.ndarray]:
+def _tibia_mesh_mm() -> tuple[Floats, Ints]:
     cx, cz = _TIBIA_CENTRE_MM
     ax, az = _TIBIA_SEMI_MM
 
@@ -305,10 +307,11 @@ def patella_back_mm(y: Floats, z: Floats) -> Floats:
              + tz * ((1 - ty) * x_s[iz + 1, iy] + ty * x_s[iz + 1, iy + 1]))
     relief = _PATELLA_RIDGE_RELIEF_MM * np.exp(
         -((z - _GROOVE_Z_MM) / (0.8 * _GROOVE_WIDTH_MM)) ** 2)
-    return front + _PATELLA_GAP_MM + relief
+    out: Floats = front + _PATELLA_GAP_MM + relief
+    return out
 
 
-def _patella_mesh_mm() -> tuple[Floats, np.ndarray]:
+def _patella_mesh_mm() -> tuple[Floats, Ints]:
     cy, cz = _PATELLA_CENTRE_MM
     ay, az = _PATELLA_SEMI_MM
 
@@ -330,7 +333,7 @@ def _patella_mesh_mm() -> tuple[Floats, np.ndarray]:
     return vertices, faces
 
 
-def _finish(vertices_mm: Floats, faces: np.ndarray) -> trimesh.Trimesh:
+def _finish(vertices_mm: Floats, faces: Ints) -> trimesh.Trimesh:
     """Scale to metres and orient the faces outward (positive signed volume)."""
     mesh = trimesh.Trimesh(vertices_mm * _M_PER_MM, faces, process=False, validate=False)
     if mesh.volume < 0.0:
@@ -361,7 +364,8 @@ def stl_bytes(mesh: trimesh.Trimesh) -> bytes:
     data['normal'] = normals
     data['vertices'] = triangles
     header = b'kneeseat default knee (procedural), metres'.ljust(80, b' ')
-    return header + np.uint32(len(triangles)).astype('<u4').tobytes() + data.tobytes()
+    count: bytes = np.uint32(len(triangles)).astype('<u4').tobytes()
+    return header + count + data.tobytes()
 
 
 def write_default_knee(out_dir: Path) -> dict[str, Path]:

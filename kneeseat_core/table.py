@@ -31,7 +31,7 @@ from .errors import ConfigError, NonFiniteError, OutOfRangeError
 from .geometry import KneeAxes, TOL
 from .status import Status
 from .table_format import check_arrays, hash_arrays
-from .typed import Floats
+from .typed import Bools, Floats, Ints
 
 __all__ = ['PoseTable', 'Lookup', 'arrays_sha256']
 
@@ -47,7 +47,7 @@ class Lookup:
     position_m: Floats          # (B, 3) m, reference frame
     orientation_xyzw: Floats    # (B, 4) unit, w >= 0
     clamped: bool               # the request lay outside the grid and was clamped
-    nonconverged: Floats        # (B,) bool: a non-converged cell contributed to that body
+    nonconverged: Bools         # (B,): a non-converged cell contributed to that body
 
 
 class _Grid:
@@ -117,8 +117,8 @@ class PoseTable:
     varus_rad: Floats           # (V,) ascending
     position_m: Floats          # (B, F, V, 3)
     orientation_xyzw: Floats    # (B, F, V, 4)
-    converged: Floats           # (B, F, V) bool
-    iterations: Floats          # (B, F, V) int
+    converged: Bools            # (B, F, V)
+    iterations: Ints            # (B, F, V)
     metadata: dict[str, Any]
     _grid: _Grid | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -163,7 +163,7 @@ class PoseTable:
         _grid_of(self)
 
     @property
-    def status(self) -> np.ndarray:
+    def status(self) -> Ints:
         """(B, F, V) int: how each cell's settle ended (`kneeseat_core.status.Status`).
 
         Read from the metadata; a table without codes (or with codes of another shape)

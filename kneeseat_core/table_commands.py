@@ -21,6 +21,8 @@ from .table_io import read_table
 if TYPE_CHECKING:
     import trimesh
 
+    from .args import Subcommands
+
 __all__ = ['register_commands']
 
 
@@ -138,7 +140,7 @@ def _cmd_kinematics(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def register_commands(sub: Any) -> None:
+def register_commands(sub: Subcommands) -> None:
     """Add info, lookup, export, plot, render and kinematics to the `kneeseat` parser."""
     p = sub.add_parser('info', help='describe a table file: cells, continuity, failures')
     p.add_argument('table', type=Path)

@@ -183,7 +183,7 @@ def _load(path: Path, where: str) -> tuple[Any, dict[str, np.ndarray]]:
         return meta, {n: _read_member(npz, n, where) for n in ARRAY_NAMES}
 
 
-def _read_member(npz: Any, name: str, where: str) -> np.ndarray:
+def _read_member(npz: np.lib.npyio.NpzFile, name: str, where: str) -> np.ndarray:
     try:
         return np.asarray(npz[name])
     except _CORRUPT as err:

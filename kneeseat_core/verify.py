@@ -16,16 +16,17 @@ import json
 import math
 from pathlib import Path
 import sys
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, Sequence, TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
+import trimesh
 
 from .args import vector3
 from .errors import TableError
 from .geometry import matrix_from_quat, pose_from, TOL
 from .knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
-from .meshes import load_mesh
+from .meshes import load_mesh, Units
 from .referee import Envelope, Referee, Verdict
 from .search import SettleParams
 from .status import Status, STATUS_NAMES
@@ -33,6 +34,9 @@ from .sweep import carried
 from .table import PoseTable
 from .table_io import read_table
 from .typed import Pose
+
+if TYPE_CHECKING:
+    from .args import Subcommands
 
 __all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'register_command']
 
@@ -134,7 +138,7 @@ def _mesh_file(path: Path, mesh_dir: str | None) -> str:
     return str(Path(mesh_dir) / path.name) if mesh_dir else str(path)
 
 
-def _meshes(spec: BodySpec, units: Any, mesh_dir: str | None) -> list[Any]:
+def _meshes(spec: BodySpec, units: Units, mesh_dir: str | None) -> list[trimesh.Trimesh]:
     return [load_mesh(_mesh_file(p, mesh_dir), units) for p in spec.meshes]
 
 
@@ -157,13 +161,13 @@ def _judge_cells(job: _CellJob) -> list[CellVerdict]:
     """Judge the cells of `job` (runs in a worker; tables and meshes cached per process)."""
     key = f'{job.table}|{job.mesh_dir}'
     if _WORKER_STATE.get('key') != key:
-        table = read_table(Path(job.table))
-        config = config_from_metadata(table.metadata)
+        loaded = read_table(Path(job.table))
+        built = config_from_metadata(loaded.metadata)
         _WORKER_STATE.clear()
         _WORKER_STATE.update(
-            key=key, table=table, config=config,
-            fixed=_meshes(config.reference, config.units, job.mesh_dir),
-            moving=[_meshes(b, config.units, job.mesh_dir) for b in config.bodies])
+            key=key, table=loaded, config=built,
+            fixed=_meshes(built.reference, built.units, job.mesh_dir),
+            moving=[_meshes(b, built.units, job.mesh_dir) for b in built.bodies])
     table: PoseTable = _WORKER_STATE['table']
     config: KneeConfig = _WORKER_STATE['config']
     meta, codes = table.metadata, table.status
@@ -283,7 +287,7 @@ def _verify_one_cmd(args: argparse.Namespace) -> int:
     return EXIT_AT_REST if at_rest else EXIT_NOT_AT_REST
 
 
-def register_command(sub: Any) -> None:
+def register_command(sub: Subcommands) -> None:
     """Add `verify` to the `kneeseat` subcommand parser."""
     from .sweep import default_workers
     p = sub.add_parser('verify', help='check settled poses with the independent referee')

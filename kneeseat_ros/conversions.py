@@ -50,7 +50,7 @@ DROP_REASONS = ('nonfinite', 'quaternion', 'frame_id', 'joint_names', 'lengths',
 
 def stamp_ns(stamp: Time) -> int:
     """Nanoseconds since the epoch of a builtin_interfaces/Time."""
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def stamp_from_ns(ns: int) -> Time:
@@ -196,7 +196,7 @@ def angles_from_joints(joint_names: Sequence[str], position: Sequence[float],
     return flexion, varus
 
 
-def pose_stamped(position_m: Sequence[float], orientation_xyzw: Sequence[float],
+def pose_stamped(position_m: Sequence[float] | Floats, orientation_xyzw: Sequence[float] | Floats,
                  stamp: Time, frame_id: str) -> PoseStamped:
     """PoseStamped from a (3,) position in m and a (4,) quaternion (x, y, z, w)."""
     msg = PoseStamped()
@@ -276,8 +276,8 @@ def display_mesh_paths(entry: Mapping[str, Any], table_dir: Path) -> tuple[str, 
     Relative paths are taken from `table_dir`.
     """
     def paths(key_list: str, key_one: str) -> list[str]:
-        listed = [m.get('path') for m in entry.get(key_list) or [] if isinstance(m, Mapping)]
-        listed = [p for p in listed if p]
+        listed = [str(m['path']) for m in entry.get(key_list) or []
+                  if isinstance(m, Mapping) and m.get('path')]
         return listed or ([str(entry[key_one])] if entry.get(key_one) else [])
 
     names = paths('display_meshes', 'display_mesh') or paths('meshes', 'mesh')

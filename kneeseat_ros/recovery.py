@@ -21,7 +21,8 @@ import yaml
 
 from kneeseat_core.errors import KneeseatError
 from .errors import RecorderError
-from .recorder import BagRecorder, METADATA_NAME, TopicSpec
+from .msgdefs import TopicSpec
+from .recorder import BagRecorder, METADATA_NAME
 
 __all__ = ['ReadableContent', 'read_readable', 'RecoveryReport', 'recover', 'main']
 

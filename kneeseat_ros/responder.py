@@ -14,7 +14,7 @@ orientation relative to the femur, and also publishes every bone in the world fr
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, TYPE_CHECKING
+from typing import Any, Literal, TYPE_CHECKING
 
 from geometry_msgs.msg import PoseStamped
 from rclpy.impl.rcutils_logger import RcutilsLogger
@@ -45,7 +45,8 @@ class Responder:
     """Answers the node's inputs (`route` and `recorder` may be swapped at any time)."""
 
     def __init__(self, route: Route, counters: Counters, log: RcutilsLogger,
-                 now_ns: Callable[[], int], out_of_range: str, joint_names: tuple[str, str],
+                 now_ns: Callable[[], int], out_of_range: Literal['clamp', 'drop'],
+                 joint_names: tuple[str, str],
                  tracker: tuple[Registration, Pairer[Any], str, float] | None = None,
                  tf_pub: Publisher | None = None) -> None:
         """Args:
@@ -214,14 +215,16 @@ class Responder:
         if femur_world is not None:
             assert self._tracker is not None
             encode = self._world_writer.encode
-            outs = [(route.reference_world_pub, femur_world)]
+            outs: list[tuple[Publisher | None, Rigid]] = [(route.reference_world_pub,
+                                                           femur_world)]
             outs += [(pub, compose(femur_world, pose))
                      for pub, pose in zip(route.body_world_pubs, poses)]
-            for pub, pose in outs:
+            for out, pose in outs:
+                assert out is not None        # tracker mode has world publishers
                 data = encode(sec, nanosec, pose)
-                pub.publish(data)
+                out.publish(data)
                 if recorder is not None:
-                    recorder.write_raw(pub.topic_name, data, now_ns, ns)
+                    recorder.write_raw(out.topic_name, data, now_ns, ns)
             counters.published += len(outs)
             transforms.append((self._tracker[2], served.frame, femur_world))
         if self._tf_pub is not None:

@@ -78,7 +78,7 @@ class InputsGroup(CallbackGroup):
         """rclpy's hook after a callback ran: nothing to release."""
 
 
-def drain(sub: Subscription[Any], handle: Handler) -> None:
+def drain(sub: Subscription, handle: Handler) -> None:
     """Handle what else is queued on `sub` now, in order, without the executor.
 
     One pass of rclpy's Python executor (wait set rebuilt over every entity) costs several
@@ -95,7 +95,7 @@ def drain(sub: Subscription[Any], handle: Handler) -> None:
 
 
 def serve(node: Node, group: InputsGroup,
-          inputs: Sequence[tuple[Subscription[Any], Handler]]) -> None:
+          inputs: Sequence[tuple[Subscription, Handler]]) -> None:
     """Spin `node` until shutdown: `inputs` in this thread, everything else in a second one.
 
     Raises:
@@ -158,16 +158,20 @@ def _housekeeping(node: Node, executor: SingleThreadedExecutor, failed: list[Bas
         wake()
 
 
-def _wait_loop(node: Node, inputs: Sequence[tuple[Subscription[Any], Handler]],
+def _wait_loop(node: Node, inputs: Sequence[tuple[Subscription, Handler]],
                stop: GuardCondition) -> None:
     """Wait on the inputs and `stop`; drain every ready input; return once the context
     is down."""
     guards = [stop]
     wait_set = _rclpy.WaitSet(len(inputs), len(guards), 0, 0, 0, 0, node.context.handle)
+    context_handle = node.context.handle
+    assert context_handle is not None           # the node's context is initialised
     with contextlib.ExitStack() as held:
-        for entity in (*(sub for sub, _ in inputs), *guards):
-            held.enter_context(entity.handle)
-        held.enter_context(node.context.handle)
+        for sub, _ in inputs:
+            held.enter_context(sub.handle)
+        for guard in guards:
+            held.enter_context(guard.handle)
+        held.enter_context(context_handle)
         pairs = [(sub, sub.handle, handle) for sub, handle in inputs]
         while node.context.ok():
             wait_set.clear_entities()

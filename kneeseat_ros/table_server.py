@@ -26,6 +26,7 @@ and out, no rclpy message object per message), diagnostics (`diagnostics`), how 
 from __future__ import annotations
 
 from collections.abc import Callable
+import functools
 from pathlib import Path
 import sys
 import time
@@ -94,11 +95,11 @@ class TableServer(Node):
         """
         super().__init__('table_server', **kwargs)
         self._log = self.get_logger()
-        self._clock = self.get_clock()
+        self._ros_clock = self.get_clock()
         # the node clock in ns for the hot path: with use_sim_time off (read at start) ROS
         # time is the system clock, and time.time_ns is ~10x cheaper than Clock.now()
         self._now_ns: Callable[[], int] = (
-            (lambda: self._clock.now().nanoseconds)
+            (lambda: self._ros_clock.now().nanoseconds)
             if self.get_parameter('use_sim_time').value else time.time_ns)
         self.params = declare_parameters(self)
         self._registration: Registration | None = None
@@ -108,7 +109,7 @@ class TableServer(Node):
         self._world = (self.params.tracker_world_frame if self._registration is not None
                        else None)
         served = Served.load(self.params.table, self._world)
-        self._counters = Counters(DROP_REASONS, self._clock.now().nanoseconds)
+        self._counters = Counters(DROP_REASONS, self._ros_clock.now().nanoseconds)
         self._recorder: BagRecorder | None = None
         self._recorder_error_logged = False
         self._pairer: Pairer[Any] | None = None
@@ -162,14 +163,14 @@ class TableServer(Node):
                 (JointState, topics.JOINT_STATES, responder.handle_joints,
                  'sensor_msgs/msg/JointState')]
         else:
-            wanted = [(PoseStamped, topic,
-                       lambda data, side=side: responder.handle_rigid(side, data), _POSE_TYPE)
+            wanted = [(PoseStamped, topic, functools.partial(responder.handle_rigid, side),
+                       _POSE_TYPE)
                       for side, topic in enumerate((self.params.tracker_femur_topic,
                                                     self.params.tracker_tibia_topic))]
         self._inputs: list[tuple[Any, Handler, str]] = []
         for msg_class, topic, handle, msg_type in wanted:
             sub = self.create_subscription(msg_class, topic,
-                                           lambda msg, h=handle: self._on_input(msg, h),
+                                           functools.partial(self._on_input, handle=handle),
                                            INPUT_QOS, raw=True,
                                            callback_group=self._inputs_group)
             self._inputs.append((sub, handle, msg_type))
@@ -252,7 +253,7 @@ class TableServer(Node):
             raise ConfigError(f"parameter 'record' is set but the recorder is unavailable "
                               f"({err}); set record:='' or install kneeseat_ros fully") from None
         self._recorder = self._responder.recorder = open_session(
-            Path(self.params.record).expanduser().absolute(), self._clock.now().nanoseconds,
+            Path(self.params.record).expanduser().absolute(), self._ros_clock.now().nanoseconds,
             self._recorded_topics(), self._served.table.sha256, str(self._served.path),
             split_size_bytes=int(self.params.record_split_size_mb * 1024 * 1024),
             split_duration_s=self.params.record_split_duration_s)
@@ -273,13 +274,13 @@ class TableServer(Node):
     def _record(self, topic: str, msg: Any, publish_time_ns: int) -> None:
         """Record a message object (the slow callbacks: markers, diagnostics)."""
         assert self._recorder is not None
-        self._recorder.write(topic, msg, self._clock.now().nanoseconds, publish_time_ns)
+        self._recorder.write(topic, msg, self._ros_clock.now().nanoseconds, publish_time_ns)
 
     # ------------------------------------------------------- slow callbacks
     def _publish_markers(self) -> None:
         served, last = self._served, self._responder.last
         stamp = (stamp_from_ns(last[1] * 1_000_000_000 + last[2]) if last is not None
-                 else self._clock.now().to_msg())
+                 else self._ros_clock.now().to_msg())
         markers = MarkerArray()
         markers.markers.extend(body_markers(0, served.meshes[0], served.frame, stamp,
                                             rgba=_REFERENCE_RGBA))
@@ -296,7 +297,7 @@ class TableServer(Node):
 
     def diagnostics(self) -> DiagnosticArray:
         """The current DiagnosticArray; starts a new rate/latency window."""
-        now = self._clock.now()
+        now = self._ros_clock.now()
         dropped = dict(self._counters.dropped)
         if self._pairer is not None:
             dropped['unpaired'] += self._pairer.unpaired

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+import functools
 from pathlib import Path
 import signal
 import subprocess
@@ -55,7 +56,7 @@ __all__ = ['leg_motion', 'example_registration', 'registration_yaml', 'expected_
 MAX_ERROR = 1e-9
 
 
-def pose_matrix(position: Sequence[float], quat_xyzw: Sequence[float]) -> Floats:
+def pose_matrix(position: Sequence[float] | Floats, quat_xyzw: Sequence[float] | Floats) -> Floats:
     """(4, 4) pose from a position (m) and a quaternion (x, y, z, w)."""
     out = np.eye(4)
     out[:3, :3] = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix()
@@ -201,7 +202,6 @@ class _Tracker:
         from rclpy.signals import SignalHandlerOptions
 
         from geometry_msgs.msg import PoseStamped
-        from kneeseat_ros.conversions import stamp_ns
         self._rclpy, self.walk, self.server, self.log = rclpy, walk, server, log
         self.context = Context()
         rclpy.init(context=self.context, domain_id=int(env['ROS_DOMAIN_ID']),
@@ -214,10 +214,12 @@ class _Tracker:
                      for topic in (topics.TRACKER_FEMUR, topics.TRACKER_TIBIA)]
         self.answers: dict[tuple[str, int], Any] = {}
         for name in walk.names:
-            self.node.create_subscription(
-                PoseStamped, topics.body_world_pose(name),
-                lambda m, name=name: self.answers.__setitem__(
-                    (name, stamp_ns(m.header.stamp)), m), reliable)
+            self.node.create_subscription(PoseStamped, topics.body_world_pose(name),
+                                          functools.partial(self._store, name), reliable)
+
+    def _store(self, name: str, msg: Any) -> None:
+        from kneeseat_ros.conversions import stamp_ns
+        self.answers[(name, stamp_ns(msg.header.stamp))] = msg
 
     def spin_until(self, done: Callable[[], bool], timeout_s: float, what: str) -> None:
         """Spin until `done()`; KneeseatError when the server died or time ran out."""
