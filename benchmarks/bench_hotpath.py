@@ -5,7 +5,7 @@ One JointState in, two PoseStamped out (the synthetic 91 x 21 table), in this pr
 real rclpy/Fast DDS: a publisher fills the node-side subscription, a subscription in this
 process is matched to the two outputs (so publish does the real DDS write). Each stage is
 timed over --n messages, --runs times; the medians of the runs are printed in us per
-message. "objects" is the path before issue 14 (rclpy deserialises into a message, the
+message. "objects" is the path before the CDR hot path (rclpy deserialises into a message, the
 fields are read from it, two PoseStamped objects are built and published, the recorder
 serialises them with cdr.serialize); "cdr" is the node's path now (raw take,
 kneeseat_ros.cdr read and write, publish bytes, record the same bytes).

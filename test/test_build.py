@@ -1,4 +1,4 @@
-"""`kneeseat build` end to end, and a real built table refusing damage (issue 3).
+"""`kneeseat build` end to end, and a real built table refusing damage.
 
 test_table.py covers every rejection on synthetic tables; here the same failures are made
 on a table the CLI really built from the default knee (a coarse grid, seconds), and each

@@ -1,6 +1,6 @@
 """The full demo: build -> table_server recording -> replay -> stop -> summary and plot.
 
-The end-to-end test is the round trip of issue 5: generated bag -> replay -> node ->
+The end-to-end test is the round trip: generated bag -> replay -> node ->
 recording; the recording is read back with an independent reader (rosbags) and every output
 equals the interpolation of its input; metadata.yaml's counts and time ranges match the file.
 """

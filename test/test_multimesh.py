@@ -1,4 +1,4 @@
-"""Bodies made of several meshes (issue 11, item 1).
+"""Bodies made of several meshes, moved as one rigid body.
 
 A body's collision meshes are one rigid body: two separate sphere files of one body over
 two bowls rest where the *pair* rests (analytic), which is where the same spheres in one

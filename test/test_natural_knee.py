@@ -1,4 +1,4 @@
-"""The natural knee (issue 11): its configs, and a coarse table checked at rest.
+"""The natural knee: its configs, and a coarse table checked at rest.
 
 The meshes live outside the repository (../shared/data/natural_knee); without them these
 tests skip. The rest check uses python-fcl objects of its own and nothing of the settle but
