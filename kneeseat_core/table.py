@@ -184,6 +184,10 @@ class PoseTable:
                     out_of_range: Literal['clamp', 'drop'] = 'clamp') -> Lookup:
         """Bilinear pose of every body at (flexion, varus).
 
+        Longer than 60 lines on purpose: this is the node's per-message lookup (up to 2 kHz),
+        written as one function of plain Python because every helper call would add its
+        overhead to a 9 us answer (module docstring; benchmarks/bench_interp.py).
+
         Positions are blended linearly; orientations by the normalised bilinear blend of the
         four corner quaternions, each first aligned to the hemisphere of the cell's first
         corner. A grid node returns that node's pose; a grid axis of length 1 accepts only its

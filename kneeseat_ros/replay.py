@@ -244,6 +244,26 @@ def _stop_on_signals(stop: threading.Event) -> dict[int, Any]:
     return previous
 
 
+def _wait_for_subscribers(args: argparse.Namespace, pubs: dict[str, Any],
+                          executor: SingleThreadedExecutor, ok: Callable[[], bool]) -> bool:
+    """With --wait-for-subscribers N, spin until every topic has N subscribers; False when
+    the replay must end first.
+
+    Raises:
+        TimeoutError: they did not come within --wait-timeout-s.
+    """
+    if not args.wait_for_subscribers:
+        return True
+    deadline = time.monotonic() + args.wait_timeout_s
+    while min(p.get_subscription_count() for p in pubs.values()) < args.wait_for_subscribers:
+        if not ok():
+            return False
+        if time.monotonic() > deadline:
+            raise TimeoutError
+        executor.spin_once(timeout_sec=WAIT_SLICE_S)
+    return True
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `replay` console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -274,15 +294,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 for topic, cls in classes.items()}
         node.get_logger().info(f'replaying {len(messages)} messages on '
                                f'{", ".join(sorted(pubs))} from {args.bag} at x{args.rate:g}')
-        if args.wait_for_subscribers:
-            deadline = time.monotonic() + args.wait_timeout_s
-            while min(p.get_subscription_count() for p in pubs.values()) \
-                    < args.wait_for_subscribers:
-                if not ok():
-                    return 0
-                if time.monotonic() > deadline:
-                    raise TimeoutError
-                executor.spin_once(timeout_sec=WAIT_SLICE_S)
+        if not _wait_for_subscribers(args, pubs, executor, ok):
+            return 0
         if args.delay_s and not _wait(stop, args.delay_s, ok):
             return 0
         progress = _Progress(None if args.quiet else sys.stderr, len(messages),
