@@ -196,13 +196,7 @@ class _Climb:
         gap = s.depth(self.touching) - s.depth(self.pose)
         if gap <= fine:
             return False
-        lo, hi = 0.0, gap
-        while hi - lo > fine:
-            mid = 0.5 * (lo + hi)
-            if s.collides(translated(self.pose, mid * s.push)):
-                hi = mid
-            else:
-                lo = mid
+        lo, hi = s.bisect_along(self.pose, 0.0, gap, fine)
         self.pose = translated(self.pose, lo * s.push)
         self.touching = translated(self.pose, (hi - lo) * s.push)
         before = len(self.floor)
@@ -280,15 +274,10 @@ class _Climb:
         """Narrow the current pose's contact bracket to at most `tau` (the patches stay);
         return its width."""
         s = self.search
-        lo, hi = 0.0, s.depth(self.touching) - s.depth(self.pose)
-        if hi <= tau:
-            return hi
-        while hi - lo > tau:
-            mid = 0.5 * (lo + hi)
-            if s.collides(translated(self.pose, mid * s.push)):
-                hi = mid
-            else:
-                lo = mid
+        gap = s.depth(self.touching) - s.depth(self.pose)
+        if gap <= tau:
+            return gap
+        lo, hi = s.bisect_along(self.pose, 0.0, gap, tau)
         self.touching = translated(self.pose, hi * s.push)
         self.pose = translated(self.pose, lo * s.push)
         self.best = max(self.best, s.depth(self.pose))

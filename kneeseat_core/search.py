@@ -316,6 +316,17 @@ class Search:
                 lo = mid
         return lo, hi
 
+    def bisect_along(self, pose: Pose, lo: float, hi: float, tol_m: float) -> tuple[float, float]:
+        """Dichotomy on the travel along Δ from `pose`: free at `lo`, touching at `hi` (m);
+        returns (free, touching) at most `tol_m` apart."""
+        while hi - lo > tol_m:
+            mid = 0.5 * (lo + hi)
+            if self.collides(translated(pose, mid * self.push)):
+                hi = mid
+            else:
+                lo = mid
+        return lo, hi
+
     def back_out(self, pose: Pose) -> Pose:
         """Move a start in collision back along -Δ until free (recorded in backed_out_m)."""
         if not self.collides(pose):
@@ -384,12 +395,7 @@ class Search:
             elif lo is None:      # retreat
                 t = hi - width
             width *= 2.0
-        while hi - lo > tol_m:
-            mid = 0.5 * (lo + hi)
-            if self.collides(translated(pose, mid * self.push)):
-                hi = mid
-            else:
-                lo = mid
+        lo, hi = self.bisect_along(pose, lo, hi, tol_m)
         return Bracket(translated(pose, lo * self.push), translated(pose, hi * self.push))
 
     def result(self, pose: Pose, status: int, reason: str, contacts: Contacts,

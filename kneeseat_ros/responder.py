@@ -93,11 +93,8 @@ class Responder:
         try:
             sec, nanosec, frame, names, position, velocity, effort = decode_joint_state(data)
         except CdrError as err:
-            try:
-                msg = deserialize_message(data, JointState)
-            except Exception:             # the rmw's own error for undecodable bytes
-                self._counters.received += 1
-                self.drop('malformed', err)
+            msg = self._deserialize(data, JointState, err)
+            if msg is None:
                 return
             sec, nanosec, frame = (msg.header.stamp.sec, msg.header.stamp.nanosec,
                                    msg.header.frame_id)
@@ -167,11 +164,8 @@ class Responder:
         try:
             sec, nanosec, frame, pose = decode_pose_stamped(data)
         except CdrError as err:
-            try:
-                msg = deserialize_message(data, PoseStamped)
-            except Exception:             # the rmw's own error for undecodable bytes
-                self._counters.received += 1
-                self.drop('malformed', err)
+            msg = self._deserialize(data, PoseStamped, err)
+            if msg is None:
                 return None
             p = msg.pose.position
             sec, nanosec, frame = (msg.header.stamp.sec, msg.header.stamp.nanosec,
@@ -184,6 +178,16 @@ class Responder:
                                     encode_pose_stamped(sec, nanosec, frame, pose),
                                     self._now_ns(), ns)
         return sec, nanosec, frame, pose, ns
+
+    def _deserialize(self, data: bytes, msg_type: type, err: CdrError) -> Any:
+        """Bytes our CDR reader refused (another encapsulation), read by rclpy; None (counted
+        as received and malformed) when rclpy cannot read them either."""
+        try:
+            return deserialize_message(data, msg_type)
+        except Exception:             # the rmw's own error for undecodable bytes
+            self._counters.received += 1
+            self.drop('malformed', err)
+            return None
 
     # ---- the answer -------------------------------------------------------------------
     def _answer(self, flexion: float, varus: float, sec: int, nanosec: int, ns: int,
