@@ -127,7 +127,7 @@ def read_table(path: Path, meshes: dict[str, Any] | None = None) -> PoseTable:
         raise TableError(f'{where}: arrays do not match their SHA-256 (stored {stored[:12]}, '
                          f'computed {actual[:12]}): corrupt or modified; {REBUILD}')
     if meshes:
-        check_meshes(meta, meshes, where)
+        _check_meshes(meta, meshes, where)
     for a in arrays.values():
         a.flags.writeable = False
     table = PoseTable(arrays['flexion'], arrays['varus'], arrays['position'],
@@ -190,7 +190,8 @@ def _read_member(npz: np.lib.npyio.NpzFile, name: str, where: str) -> np.ndarray
         raise TableError(f'{where} is corrupt (array {name!r}: {err}); {REBUILD}') from None
 
 
-def check_meshes(meta: dict[str, Any], meshes: dict[str, Any], where: str) -> None:
+def _check_meshes(meta: dict[str, Any], meshes: dict[str, Any], where: str) -> None:
+    """Each given mesh file must have the SHA-256 the table recorded for its body."""
     entries = {b['name']: b for b in meta['bodies']}
     ref = meta['reference']
     if isinstance(ref.get('name'), str):

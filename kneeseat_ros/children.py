@@ -43,6 +43,7 @@ def child_env() -> dict[str, str]:
 
 
 def last_line(log: Path) -> str:
+    """The last non-empty line of a child's log ('' when there is none)."""
     try:
         lines = [ln.strip() for ln in log.read_text(errors='replace').splitlines() if ln.strip()]
     except OSError:
@@ -110,6 +111,7 @@ class DiagnosticsMonitor:
         return True
 
     def close(self) -> None:
+        """Destroy the listening node and its context."""
         self.executor.shutdown()
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.context)
