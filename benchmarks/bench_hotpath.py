@@ -5,9 +5,9 @@ One JointState in, two PoseStamped out (the synthetic 91 x 21 table), in this pr
 real rclpy/Fast DDS: a publisher fills the node-side subscription, a subscription in this
 process is matched to the two outputs (so publish does the real DDS write). Each stage is
 timed over --n messages, --runs times; the medians of the runs are printed in us per
-message. "objects" is the path before issue 14 (rclpy deserialises into a message, the
+message. "objects" is the path before the CDR hot path (rclpy deserialises into a message, the
 fields are read from it, two PoseStamped objects are built and published, the recorder
-serialises them with msgdefs.serialize); "cdr" is the node's path now (raw take,
+serialises them with cdr.serialize); "cdr" is the node's path now (raw take,
 kneeseat_ros.cdr read and write, publish bytes, record the same bytes).
 
     python benchmarks/bench_hotpath.py [--n 5000] [--runs 5]
@@ -52,11 +52,11 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.serialization import serialize_message
 
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_core.table import read_table, write_table
-    from kneeseat_ros.cdr import decode_joint_state, encode_joint_state, PoseStampedWriter
+    from kneeseat_core.table_io import read_table, write_table
+    from kneeseat_ros.cdr import (decode_joint_state, encode_joint_state, PoseStampedWriter,
+                                  serialize)
     from kneeseat_ros.conversions import (angles_from_joint_state, angles_from_joints,
                                           joint_state, pose_stamped, stamp_from_ns)
-    from kneeseat_ros.msgdefs import serialize
     from kneeseat_ros.recorder import BagRecorder
     from kneeseat_ros.table_server import INPUT_QOS, OUTPUT_QOS
     from sensor_msgs.msg import JointState

@@ -16,9 +16,8 @@ attitude decode are timed in-process as well.
     python benchmarks/bench_server.py --rate-s 60 --flat-s 0 --competitor
     python benchmarks/bench_server.py --rate-hz 2000 --rate-s 30 --flat-s 0 --fifo 10
 
-Targets (issue 4): 1 kHz with zero drops and p99 <= 2 ms end-to-end; one interpolation
-<= 20 us. Issue 14: 2 kHz, 100% answered, p99 <= 1 ms; 1 kHz beside a CPU-bound process,
-100% answered.
+Targets: 1 kHz with zero drops and p99 <= 2 ms end-to-end; one interpolation <= 20 us;
+2 kHz, 100% answered, p99 <= 1 ms; 1 kHz beside a CPU-bound process, 100% answered.
 """
 from __future__ import annotations
 
@@ -164,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_core.table import read_table, write_table
+    from kneeseat_core.table_io import read_table, write_table
     from kneeseat_ros.conversions import AttitudeDecoder, angles_from_pose_stamped
     from kneeseat_ros.conversions import pose_stamped_for_attitude, stamp_from_ns
 

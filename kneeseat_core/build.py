@@ -12,18 +12,24 @@ import math
 import os
 from pathlib import Path
 import sys
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
 
 from .continuity import continuity
 from .errors import ConfigError
+from .files import file_sha256, write_bytes
 from .geometry import quat_from_matrix
-from .knee import grid_values, KneeConfig, load_config
+from .knee import BodySpec, grid_values, KneeConfig, load_config
 from .status import STATUS_NAMES
 from .sweep import default_workers, process_executor, sweep, SweepResult
-from .table import file_sha256, PoseTable, write_table
+from .table import PoseTable
+from .table_io import write_table
+from .typed import Floats
+
+if TYPE_CHECKING:
+    from .args import Subcommands
 
 __all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
            'make_table', 'register_commands', 'executor_for',
@@ -51,9 +57,7 @@ def materialise_default_knee(out_dir: Path | None = None) -> Path:
     config = out_dir / DEFAULT_CONFIG
     text = resources.files('kneeseat_core').joinpath('data', DEFAULT_CONFIG).read_text()
     if not config.is_file() or config.read_text() != text:
-        tmp = config.with_suffix('.yaml.tmp')
-        tmp.write_text(text)
-        os.replace(tmp, config)
+        write_bytes(config, text.encode())
     return config
 
 
@@ -79,7 +83,7 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
     """
     hashes = iter(result.mesh_sha256)   # taken by the sweep before it settled anything
 
-    def body_meta(spec: Any) -> dict[str, Any]:
+    def body_meta(spec: BodySpec) -> dict[str, Any]:
         meshes = [{'path': str(m), 'sha256': next(hashes)} for m in spec.meshes]
         return {'name': spec.name, 'frame': spec.frame, 'mesh': meshes[0]['path'],
                 'mesh_sha256': meshes[0]['sha256'], 'meshes': meshes,
@@ -243,7 +247,7 @@ def _raw_settle(path: Path) -> dict[str, Any]:
     return dict(data.get('settle') or {})
 
 
-def _degrees_spec(values_rad: Any) -> list[float]:
+def _degrees_spec(values_rad: Floats) -> list[float]:
     """[start, stop, step] in degrees for an ascending, uniform grid."""
     deg = [math.degrees(v) for v in values_rad]
     if len(deg) == 1:
@@ -272,7 +276,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def register_commands(sub: Any) -> None:
+def register_commands(sub: Subcommands) -> None:
     """Add `build` and `synth` to the `kneeseat` subcommand parser."""
     p = sub.add_parser('build', help='settle a knee over its range of motion into a table')
     p.add_argument('config', nargs='*', type=Path,

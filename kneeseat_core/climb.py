@@ -34,6 +34,7 @@ import time
 
 import numpy as np
 
+from .hull import min_norm_point
 from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
 from .status import Status
 from .typed import Floats, Pose
@@ -66,47 +67,6 @@ FINE = 0.25
 
 _DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)])
 _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
-
-
-def _min_norm_point(points: Floats) -> Floats:
-    """Minimum-norm point of the convex hull of `points` (k, d): Wolfe's algorithm (exact
-    in finitely many steps; the active set is at most d + 1 points)."""
-    sq = np.einsum('ij,ij->i', points, points)
-    if len(points) == 1:
-        return points[0].copy()
-    scale = float(sq.max())
-    active = [int(np.argmin(sq))]
-    weights = np.array([1.0])
-    x = points[active[0]].copy()
-    for _ in range(8 * len(points) + 16):
-        j = int(np.argmin(points @ x))
-        if float(x @ x) - float(points[j] @ x) <= 1e-12 * scale or j in active:
-            break
-        active.append(j)
-        weights = np.append(weights, 0.0)
-        while True:                        # minor cycle: the affine min-norm point
-            basis = points[active]
-            n = len(active)
-            kkt = np.zeros((n + 1, n + 1))
-            kkt[:n, :n] = basis @ basis.T
-            kkt[:n, n] = kkt[n, :n] = 1.0
-            rhs = np.zeros(n + 1)
-            rhs[n] = 1.0
-            try:
-                alpha = np.linalg.solve(kkt, rhs)[:n]
-            except np.linalg.LinAlgError:  # affinely dependent points
-                alpha = np.linalg.lstsq(kkt, rhs, rcond=None)[0][:n]
-            if np.all(alpha > 1e-12):
-                weights = alpha
-                break
-            low = alpha <= 1e-12
-            step = float(np.min(weights[low] / (weights[low] - alpha[low])))
-            weights = weights + step * (alpha - weights)
-            keep = weights > 1e-12
-            active = [a for a, k in zip(active, keep) if k]
-            weights = weights[keep]
-        x = weights @ points[active]
-    return x
 
 
 @dataclass(slots=True, eq=False)
@@ -171,22 +131,13 @@ class _Climb:
         return np.stack([n @ s.e1, n @ s.e2, np.einsum('ij,ij->i', n, lever)], 1) \
             * s.free / down[:, None]
 
-    def _envelope_mask(self, direction: Floats) -> Floats:
-        """Where the envelope holds: drop the parts of `direction` that leave it."""
-        s, p = self.search, self.search.params
-        if not p.envelope_holds:
-            return direction
-        slide, spin = s.offset(self.pose)
-        out = direction.copy()
-        norm = float(np.linalg.norm(slide))
-        if norm >= p.max_slide_m - self.finest and norm > 0.0:
-            radial = slide / norm
-            outward = float(out[:2] @ radial)
-            if outward > 0.0:
-                out[:2] -= outward * radial
-        if abs(spin) >= p.max_spin_rad - self.finest / self.arm and out[2] * spin > 0.0:
-            out[2] = 0.0
-        return out
+    def _mask(self, direction: Floats) -> Floats:
+        """Where the envelope holds: `direction` without the parts that leave it."""
+        return self.search.envelope_mask(self.pose, self.finest, self.arm, direction)
+
+    def _room(self, direction: Floats, length: float) -> float:
+        """The longest move along `direction` (up to `length`) that stays inside."""
+        return self.search.limit_to_envelope(self.pose, self.arm, direction, length)
 
     # ---- the four steps ---------------------------------------------------------------
     def choose(self) -> tuple[Floats, float] | None:
@@ -201,7 +152,7 @@ class _Climb:
             grads = self.gradients(contacts)
             if len(grads) == 0:
                 return None
-            d = self._envelope_mask(_min_norm_point(grads))
+            d = self._mask(min_norm_point(grads))
             norm = float(np.linalg.norm(d))
             if norm > self.flat:
                 direction = d / norm
@@ -226,7 +177,7 @@ class _Climb:
             return None
         lever = np.cross(s.push, facing.points[flat][0] - s.centre(self.pose))
         spin = np.array([-(lever @ s.e1) / self.arm, -(lever @ s.e2) / self.arm, 1.0])
-        spin = self._envelope_mask(spin / np.linalg.norm(spin))
+        spin = self._mask(spin / np.linalg.norm(spin))
         norm = float(np.linalg.norm(spin))
         if norm == 0.0:
             return None
@@ -245,37 +196,13 @@ class _Climb:
         gap = s.depth(self.touching) - s.depth(self.pose)
         if gap <= fine:
             return False
-        lo, hi = 0.0, gap
-        while hi - lo > fine:
-            mid = 0.5 * (lo + hi)
-            if s.collides(translated(self.pose, mid * s.push)):
-                hi = mid
-            else:
-                lo = mid
+        lo, hi = s.bisect_along(self.pose, 0.0, gap, fine)
         self.pose = translated(self.pose, lo * s.push)
         self.touching = translated(self.pose, (hi - lo) * s.push)
         before = len(self.floor)
         self.floor = s.patches(self.touching)
         self.best = max(self.best, s.depth(self.pose))
         return len(self.floor) != before
-
-    def _limit_to_envelope(self, direction: Floats, length: float) -> float:
-        """The longest move along `direction` (up to `length`) that stays inside."""
-        s, p = self.search, self.search.params
-        if not p.envelope_holds:
-            return length
-        slide, spin = s.offset(self.pose)
-        a, b = direction[:2], slide
-        aa = float(a @ a)
-        if aa > 0.0:                       # |b + t a| <= max_slide
-            bb, ab = float(b @ b), float(a @ b)
-            disc = ab * ab - aa * (bb - p.max_slide_m ** 2)
-            if disc >= 0.0:
-                length = min(length, max((-ab + math.sqrt(disc)) / aa, 0.0))
-        if direction[2] != 0.0:
-            room = p.max_spin_rad - math.copysign(1.0, direction[2]) * spin
-            length = min(length, max(room * self.arm / abs(direction[2]), 0.0))
-        return length
 
     def move(self, direction: Floats, slope: float) -> None:
         """One line-search step along `direction` (sets `ended` when the climb must stop).
@@ -290,7 +217,7 @@ class _Climb:
         the surfaces do not have are not followed through the flats they stand on.
         """
         s = self.search
-        length = self._limit_to_envelope(direction, self.step)
+        length = self._room(direction, self.step)
         if length < 0.25 * self.finest:
             self.step = 0.0
             return
@@ -347,15 +274,10 @@ class _Climb:
         """Narrow the current pose's contact bracket to at most `tau` (the patches stay);
         return its width."""
         s = self.search
-        lo, hi = 0.0, s.depth(self.touching) - s.depth(self.pose)
-        if hi <= tau:
-            return hi
-        while hi - lo > tau:
-            mid = 0.5 * (lo + hi)
-            if s.collides(translated(self.pose, mid * s.push)):
-                hi = mid
-            else:
-                lo = mid
+        gap = s.depth(self.touching) - s.depth(self.pose)
+        if gap <= tau:
+            return gap
+        lo, hi = s.bisect_along(self.pose, 0.0, gap, tau)
         self.touching = translated(self.pose, hi * s.push)
         self.pose = translated(self.pose, lo * s.push)
         self.best = max(self.best, s.depth(self.pose))
@@ -402,7 +324,7 @@ class _Climb:
                 hopeless = length * model < lift - self.tol - margin
                 for d in directions[order[~hopeless[order]]]:
                     if s.params.envelope_holds and \
-                            self._limit_to_envelope(d, length) < length:
+                            self._room(d, length) < length:
                         continue
                     cand = s.lateral(self.pose, length * d, self.arm)
                     if s.collides(translated(cand, lift * s.push)):
@@ -430,22 +352,12 @@ class _Climb:
             if best is not None and s.depth(bracket.free) <= s.depth(best.free) + self.tol:
                 break
             best = bracket
-            grown = self._limit_to_envelope(direction, 2.0 * length)
+            grown = self._room(direction, 2.0 * length)
             if grown <= length or grown > MAX_MOVE_STEPS * s.params.step_m:
                 break
             length = grown
         self._arrive(best, self._floor_at(best.free))
         self.step = max(self.step, 2.0 * self.finest)
-
-    def on_boundary(self) -> str | None:
-        """Which envelope bound the pose rests on, if any."""
-        s, p = self.search, self.search.params
-        slide, spin = s.offset(self.pose)
-        if float(np.linalg.norm(slide)) >= p.max_slide_m - self.finest:
-            return f'slide {p.max_slide_m * 1e3:g} mm'
-        if abs(spin) >= p.max_spin_rad - self.finest / self.arm:
-            return f'spin {math.degrees(p.max_spin_rad):g} deg'
-        return None
 
 
 def run_climb(search: Search, bracket: Bracket) -> SettleResult:
@@ -469,7 +381,8 @@ def run_climb(search: Search, bracket: Bracket) -> SettleResult:
         if chosen is not None:
             climb.move(*chosen)
         elif not climb.prove():
-            bound = climb.on_boundary() if p.envelope_holds else None
+            bound = (search.on_boundary(climb.pose, climb.finest, climb.arm)
+                     if p.envelope_holds else None)
             climb.ended = (
                 (Status.CONSTRAINED, f'rest on the envelope boundary ({bound}): nothing inside '
                  'the envelope gains more than the resolution along the push') if bound else

@@ -11,7 +11,7 @@ scene is submitted, the executor reads the scene's mesh files on the client, che
 against the SHA-256 in the `SceneSpec`, and registers a `MeshShipment` worker plugin that
 carries the bytes. The scheduler hands the plugin to every worker once (and to every worker
 that joins later, e.g. a restarted one); each worker writes the bytes under its local
-directory as `<sha256>.<ext>` and registers the copy with `sweep.register_mesh_copy`, so
+directory as `<sha256>.<ext>` and registers the copy with `scene.register_mesh_copy`, so
 `scene_bodies` builds the rigid bodies from it even where the client's paths do not exist.
 Tasks themselves carry only the small `ChainJob`.
 
@@ -30,19 +30,23 @@ import os
 from pathlib import Path
 import re
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from distributed import Client, KilledWorker
 from distributed.diagnostics.plugin import WorkerPlugin
 
+from . import kneeseat_version
 from .errors import ConfigError, KneeseatError, MeshError
-from .sweep import ChainJob, register_mesh_copy, scene_builds, SceneSpec
-from .table import file_sha256
+from .files import file_sha256, write_bytes
+from .scene import register_mesh_copy, scene_builds, SceneSpec
+from .sweep import ChainJob
 
 __all__ = ['DaskExecutor', 'MeshShipment', 'dask_executor', 'worker_stats',
-           'kneeseat_version', 'CONNECT_TIMEOUT_S', 'WORKERS_TIMEOUT_S', 'RETRIES']
+           'CONNECT_TIMEOUT_S', 'WORKERS_TIMEOUT_S', 'RETRIES']
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar('_T')
 
 CONNECT_TIMEOUT_S = 10.0   # to reach the scheduler
 WORKERS_TIMEOUT_S = 60.0   # for at least one worker to be connected to it
@@ -56,15 +60,6 @@ _RECEIVED: dict[str, int] = {'meshes': 0, 'bytes': 0, 'written': 0}
 _CHAIN_KEYS: set[str] = set()
 
 
-def kneeseat_version() -> str:
-    """The installed kneeseat version ('unknown' when not installed as a distribution)."""
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        return version('kneeseat_ros')
-    except PackageNotFoundError:
-        return 'unknown'
-
-
 def worker_stats() -> dict[str, int]:
     """This process's shipping counters (run on a worker with `client.run(worker_stats)`).
 
@@ -72,7 +67,7 @@ def worker_stats() -> dict[str, int]:
         meshes_received: mesh payloads handed to this worker by `MeshShipment` plugins;
         bytes_received: their total size; files_written: copies written to disk (a payload
         already on disk is not written again); scene_builds: scenes built from meshes
-        (`sweep.scene_bodies`); chains_run: `run_chain` tasks finished here; pid.
+        (`scene.scene_bodies`); chains_run: `run_chain` tasks finished here; pid.
     """
     return {'meshes_received': _RECEIVED['meshes'], 'bytes_received': _RECEIVED['bytes'],
             'files_written': _RECEIVED['written'], 'scene_builds': scene_builds(),
@@ -103,9 +98,7 @@ class MeshShipment(WorkerPlugin):
             _RECEIVED['bytes'] += len(data)
             path = folder / f'{sha}{suffix}'
             if not (path.is_file() and path.stat().st_size == len(data)):
-                tmp = folder / f'.{sha}.{os.getpid()}.tmp'
-                tmp.write_bytes(data)
-                os.replace(tmp, path)
+                write_bytes(path, data)
                 _RECEIVED['written'] += 1
             register_mesh_copy(sha, str(path))
 
@@ -125,16 +118,18 @@ class DaskExecutor(Executor):
 
     def __init__(self, client: Client, retries: int = RETRIES) -> None:
         self.client = client
+        assert client.scheduler is not None          # a connected client has one
         self.address = str(client.scheduler.address)
         self._inner = client.get_executor(retries=retries, pure=False)
         self._plugins: dict[tuple[str, ...], str] = {}
         self._lock = threading.Lock()
 
-    def submit(self, fn: Callable, /, *args: Any, **kwargs: Any) -> Future:  # type: ignore
+    def submit(self, fn: Callable[..., _T], /, *args: Any,
+               **kwargs: Any) -> Future[_T]:
         """Run `fn(*args, **kwargs)` on the cluster; ship the meshes of any `ChainJob` first."""
         args = tuple(self._with_meshes(a) if isinstance(a, ChainJob) else a for a in args)
         inner = self._inner.submit(fn, *args, **kwargs)
-        outer: Future = Future()
+        outer: Future[_T] = Future()
         outer.add_done_callback(lambda done: done.cancelled() and inner.cancel())
         inner.add_done_callback(lambda done: _forward(done, outer, self.address))
         return outer
@@ -197,7 +192,7 @@ class DaskExecutor(Executor):
         return job
 
 
-def _forward(inner: Future, outer: Future, address: str) -> None:
+def _forward(inner: Future[_T], outer: Future[_T], address: str) -> None:
     """Copy `inner`'s outcome to `outer`; a chain that kept killing workers -> KneeseatError."""
     if outer.done():              # cancelled by the caller
         return

@@ -17,7 +17,8 @@ import fcl
 import numpy as np
 import trimesh
 
-from .typed import Floats, Pose
+from .geometry import TOL
+from .typed import Floats, Ints, Pose
 
 __all__ = ['RigidBody', 'CollisionPair']
 
@@ -38,9 +39,9 @@ class RigidBody:
     bound_centre: Floats  # (3,) m, centre of a sphere enclosing every vertex
     bound_radius: float   # m
     reach: float          # m, farthest vertex from the centroid
-    faces: np.ndarray     # (n, 3) int vertex indices
+    faces: Ints           # (n, 3) vertex indices
     vertex_normals: Floats  # (m, 3) unit
-    adjacency: tuple[np.ndarray, np.ndarray]   # CSR (indptr, indices) of edge neighbours
+    adjacency: tuple[Ints, Ints]   # CSR (indptr, indices) of edge neighbours
 
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh) -> RigidBody:
@@ -51,7 +52,7 @@ class RigidBody:
         normals = np.asarray(mesh.vertex_normals)[faces].mean(axis=1)
         lengths = np.linalg.norm(normals, axis=1, keepdims=True)
         # A triangle whose vertex normals cancel (a knife edge) keeps its face normal.
-        flat = lengths[:, 0] < 1e-9
+        flat = lengths[:, 0] < TOL.normal_length
         normals[flat] = np.asarray(mesh.face_normals)[flat]
         lengths[flat] = 1.0
         centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
@@ -68,7 +69,7 @@ class RigidBody:
                    (indptr, np.ascontiguousarray(both[order, 1])))
 
 
-def _bvh(vertices: Floats, faces: np.ndarray) -> fcl.BVHModel:
+def _bvh(vertices: Floats, faces: Ints) -> fcl.BVHModel:
     bvh = fcl.BVHModel()
     bvh.beginModel(len(faces), len(vertices))   # (triangles, vertices)
     bvh.addSubModel(vertices, faces)
@@ -112,7 +113,7 @@ class CollisionPair:
         """
         return np.unique(self.contact_points(pose)[0])
 
-    def contact_points(self, pose: Pose) -> tuple[np.ndarray, Floats]:
+    def contact_points(self, pose: Pose) -> tuple[Ints, Floats]:
         """Every overlapping pair of triangles at `pose`: the reference triangle (k,) and the
         point (k, 3) m, fixed frame, where the two triangles cross (python-fcl's contact).
 

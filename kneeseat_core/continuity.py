@@ -17,7 +17,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .geometry import matrix_from_quat, quat_from_matrix
-from .typed import Floats
+from .typed import Bools, Floats
 
 __all__ = ['BOUND_M', 'BOUND_RAD', 'neighbour_steps', 'continuity']
 
@@ -53,7 +53,7 @@ def neighbour_steps(position_m: Floats, orientation_xyzw: Floats,
     return out
 
 
-def continuity(position_m: Floats, orientation_xyzw: Floats, converged: Floats,
+def continuity(position_m: Floats, orientation_xyzw: Floats, converged: Bools,
                flexion_rad: Floats, varus_rad: Floats, bodies: Sequence[str],
                attitudes: Floats | None = None, bound_m: float = BOUND_M,
                bound_rad: float = BOUND_RAD) -> dict[str, Any]:
@@ -80,13 +80,14 @@ def continuity(position_m: Floats, orientation_xyzw: Floats, converged: Floats,
         entry: dict[str, Any] = {'pairs_over_bound': {}}
         for key, unit_scale, label in (('position', 1e3, 'max_position_mm'),
                                        ('rotation', math.degrees(1.0), 'max_rotation_deg')):
-            best = (0.0, None)
+            best: tuple[float, list[list[float]] | None] = (0.0, None)
             for axis, (dp, dr) in steps.items():
                 values = (dp if key == 'position' else dr)[b]
                 if values.size and float(values.max()) > best[0]:
                     i, j = np.unravel_index(int(np.argmax(values)), values.shape)
                     di, dj = offsets[axis]
-                    best = (float(values.max()), [cell(i, j), cell(i + di, j + dj)])
+                    best = (float(values.max()),
+                            [cell(int(i), int(j)), cell(int(i) + di, int(j) + dj)])
             entry[label] = {'value': round(best[0] * unit_scale, 6), 'between': best[1]}
         for axis, (dp, dr) in steps.items():
             over = (dp[b] > bound_m) | (dr[b] > bound_rad)

@@ -5,8 +5,8 @@ Every message says what failed, where (file, key, angle) and how to fix it. Only
 """
 from __future__ import annotations
 
-__all__ = ['KneeseatError', 'MeshError', 'ConfigError', 'SettleError', 'NoContactError',
-           'TableError', 'OutOfRangeError']
+__all__ = ['KneeseatError', 'MeshError', 'ConfigError', 'UsageError', 'SettleError',
+           'NoContactError', 'TableError', 'OutOfRangeError', 'NonFiniteError']
 
 
 class KneeseatError(Exception):
@@ -19,6 +19,10 @@ class MeshError(KneeseatError):
 
 class ConfigError(KneeseatError):
     """A knee configuration or a parameter is invalid; the message names the key."""
+
+
+class UsageError(KneeseatError):
+    """A command-line value or a file it names cannot be used (e.g. a START.json)."""
 
 
 class SettleError(KneeseatError):
@@ -47,3 +51,7 @@ class OutOfRangeError(KneeseatError):
             f'{name}={value_rad:.4f} rad outside table [{lo_rad:.4f}, {hi_rad:.4f}] rad; '
             're-run `kneeseat build` with a wider grid or use out_of_range=clamp')
         self.name, self.value_rad, self.lo_rad, self.hi_rad = name, value_rad, lo_rad, hi_rad
+
+
+class NonFiniteError(KneeseatError):
+    """A requested attitude is NaN or infinite."""

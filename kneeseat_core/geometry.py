@@ -1,19 +1,33 @@
-"""Rigid transforms, quaternions and the knee attitude decomposition.
+"""Rigid transforms, quaternions, the knee attitude decomposition and every tolerance.
 
 Poses are (4, 4) float64 homogeneous matrices named `a_from_b` (they map points in b into
 a). Quaternions are (x, y, z, w), ROS order, canonicalised to w >= 0; they exist only at
 the ROS boundary, in table files and in interpolation. Everything is vectorised over a
 leading axis where it says so.
 
-Knee attitude (DESIGN.md): the orientation of the moving body in the reference frame is
+Knee attitude (docs/design.md, "Conventions"): the orientation of the moving body in the
+reference frame is
     R = Rot(flexion_axis, flexion) @ Rot(varus_axis, varus) @ Rot(long_axis, rotation)
 with the three axes given in the reference frame at neutral.
+
+Why `rotation_about`, `quat_from_matrix` and `matrix_from_quat` are our own and not
+scipy's `Rotation` (which `rotation_angle` and the referee use): the settle, the sweep
+and the bag maker run on them, and every table's and the shipped bag's bytes depend on
+their exact arithmetic. scipy rounds differently in the last bit (measured on the 3,822
+orientations of the default knee's full table): 20 % of the quaternions from matrices and
+77 % of the matrices from quaternions differ in some component, by up to 2.2e-16 and
+4.4e-16; of 1,000 rotations about one axis, 78 % of `from_rotvec`'s. That changes the
+settles and so every table's hash. Speed decides nothing: one quaternion from a matrix
+50 us here against scipy's 46 us, all 3,822 at once 0.88 ms against 1.05 ms, one
+rotation about an axis 7.6 us against 11.2 us.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
 
 from .errors import ConfigError
 from .typed import Floats, Pose, Vec3
@@ -24,18 +38,55 @@ __all__ = ['Tolerances', 'TOL', 'unit', 'rotation_about', 'pose_from', 'rotation
 
 @dataclass(frozen=True, slots=True)
 class Tolerances:
-    """Every numeric tolerance of the project, in one place."""
+    """Every numeric tolerance of the project, in one place (`TOL`).
 
-    zero_length: float = 1e-12     # below this a vector has no direction
-    unit_norm: float = 1e-6        # |1 - |q|| accepted as a unit quaternion / axis
-    orthogonal: float = 1e-3       # |cos| accepted between axes declared orthogonal
-    torque: float = 1e-12          # |torque| (m) below this counts as zero (no sign)
+    Geometry and arithmetic:
+        zero_length: below this a vector (or a sum of weights) has no direction.
+        unit_norm: |1 - |q|| accepted as a unit quaternion or axis in a table or a config.
+        orthogonal: |cos| accepted between axes declared orthogonal.
+        torque: |torque| (m) below this counts as zero (no sign), patent method.
+        degenerate: |Gram determinant| (m^4) below this: a triangle has no area.
+        normal_length: a sum of unit vertex normals shorter than this cancels (a knife
+            edge), and the face normal stands in for it.
+        hull_weight: Wolfe's minimum-norm point: weights and the optimality gap (relative
+            to the largest squared norm) below this count as zero.
+        fraction: a body's attitude fraction within this of 0 ignores that angle.
+    Inputs from outside:
+        input_unit_norm: |1 - |q|| accepted (then normalised) from a tracker or a START.json:
+            float32 data, often renormalised after filtering.
+        registration: |R^T R - I| and |1 - |q|| accepted in a tracker registration file
+            (written with 6 to 9 digits; a scale error of 1e-6 is 0.2 um at 0.2 m).
+    Grids (angles in degrees):
+        grid_step: a grid's step must divide its range to within this many steps.
+        demo_step: the demo's grid step must divide 10 deg to within this many steps.
+        grid_match_deg: an angle this close to a grid node is that node.
+        grid_range_deg: an angle this far outside a grid's range is still inside it.
+        grid_uniform: relative and absolute difference of steps that count as equal.
+        grid_same_rad: two grids whose values differ by less than this are the same grid.
+    """
+
+    zero_length: float = 1e-12
+    unit_norm: float = 1e-6
+    orthogonal: float = 1e-3
+    torque: float = 1e-12
+    degenerate: float = 1e-30
+    normal_length: float = 1e-9
+    hull_weight: float = 1e-12
+    fraction: float = 1e-12
+    input_unit_norm: float = 1e-3
+    registration: float = 1e-6
+    grid_step: float = 1e-6
+    demo_step: float = 1e-9
+    grid_match_deg: float = 1e-6
+    grid_range_deg: float = 1e-9
+    grid_uniform: float = 1e-9
+    grid_same_rad: float = 1e-12
 
 
 TOL = Tolerances()
 
 
-def unit(vector: Floats, name: str = 'vector') -> Vec3:
+def unit(vector: ArrayLike, name: str = 'vector') -> Vec3:
     """Return `vector` (3,) scaled to unit length.
 
     Raises:
@@ -59,7 +110,8 @@ def rotation_about(axis: Vec3, angle_rad: float | Floats) -> Floats:
     a = np.asarray(angle_rad, dtype=np.float64)
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     s, c = np.sin(a)[..., None, None], np.cos(a)[..., None, None]
-    return np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+    out: Floats = np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+    return out
 
 
 def pose_from(rotation: Floats, translation: Floats) -> Pose:
@@ -71,9 +123,9 @@ def pose_from(rotation: Floats, translation: Floats) -> Pose:
 
 
 def rotation_angle(a: Floats, b: Floats) -> float:
-    """Angle (rad) of the rotation taking (3, 3) rotation `a` to `b`."""
-    cos = (np.trace(a.T @ b) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    """Angle (rad) of the rotation taking (3, 3) rotation `a` to `b` (scipy's Rotation:
+    accurate near 0, where the arccos of the trace loses half the digits)."""
+    return float(Rotation.from_matrix(np.asarray(a).T @ np.asarray(b)).magnitude())
 
 
 def quat_from_matrix(rotation: Floats) -> Floats:
@@ -94,7 +146,8 @@ def quat_from_matrix(rotation: Floats) -> Floats:
     pick = np.argmax(np.stack([m00, m11, m22, m00 + m11 + m22], -1), axis=-1)
     q = np.take_along_axis(cand, pick[..., None, None], axis=-2)[..., 0, :]
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:4] < 0.0, -q, q)
+    out: Floats = np.where(q[..., 3:4] < 0.0, -q, q)
+    return out
 
 
 def matrix_from_quat(quat_xyzw: Floats) -> Floats:
@@ -125,7 +178,7 @@ class KneeAxes:
     long: Vec3
 
     @classmethod
-    def from_vectors(cls, flexion: Floats, varus: Floats, long: Floats) -> KneeAxes:
+    def from_vectors(cls, flexion: ArrayLike, varus: ArrayLike, long: ArrayLike) -> KneeAxes:
         """Normalise and check three axes.
 
         Raises:

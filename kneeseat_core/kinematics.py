@@ -33,6 +33,8 @@ Patella (relative to the femur, deg unless said):
   border moves posteriorly, towards the femur);
 - `patella_ml` (mm): lateral(+)/medial shift of the patellar landmark along e1, change from
   the first reported angle.
+The CSV, Markdown and figure of `kneeseat kinematics` are `kneeseat_core.kinematics_report`.
+
 Landmarks (body frames): the plateau centre is the area centroid of the tibia's first
 collision mesh (the tibial cartilage or insert); the medial and lateral centres are the
 centroids of its parts on either side of that centre (the two cartilage sheets of a natural
@@ -40,27 +42,23 @@ knee); the patellar landmark is the centroid of the patella's first collision me
 """
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-import csv
+from collections.abc import Sequence
 from dataclasses import dataclass
-import io
 import math
 from pathlib import Path
 from typing import Literal
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 import numpy as np
 import trimesh
 
 from .errors import ConfigError, MeshError, TableError
-from .geometry import matrix_from_quat, unit
-from .table import PoseTable
-from .typed import Floats, Vec3
+from .files import file_sha256
+from .geometry import matrix_from_quat, TOL, unit
+from .table import Lookup, PoseTable
+from .typed import Bools, Floats, Vec3
 
-__all__ = ['QUANTITIES', 'DEFAULT_ANGLES_DEG', 'Landmarks', 'KneeKinematics', 'landmarks',
-           'table_landmarks', 'knee_kinematics', 'kinematics_rows', 'kinematics_markdown',
-           'write_kinematics_csv', 'write_text', 'read_reference', 'plot_kinematics']
+__all__ = ['QUANTITIES', 'DEFAULT_ANGLES_DEG', 'Side', 'Landmarks', 'KneeKinematics',
+           'landmarks', 'table_landmarks', 'knee_kinematics']
 
 Side = Literal['right', 'left']
 
@@ -97,7 +95,7 @@ class KneeKinematics:
     knee_flexion_deg: Floats             # (n,) positive = flexed
     varus_deg: float                     # the varus value used (grid value nearest 0)
     values: dict[str, Floats]            # quantity -> (n,), units as in QUANTITIES
-    nonconverged: dict[str, Floats]      # 'tibia' / 'patella' -> (n,) bool
+    nonconverged: dict[str, Bools]       # 'tibia' / 'patella' -> (n,) bool
     at_first: dict[str, float]           # rotation -> its own value at the first angle (deg)
 
 
@@ -149,7 +147,7 @@ def table_landmarks(table: PoseTable, *, tibia: str | None = 'tibia',
         TableError: a recorded mesh no longer has the SHA-256 the table was built with.
     """
     from .meshes import load_mesh
-    from .table import file_sha256, mesh_entries
+    from .table_format import mesh_entries
     entries = {b['name']: b for b in table.metadata['bodies']}
     units = (table.metadata.get('config') or {}).get('units', 'm')
 
@@ -204,222 +202,105 @@ def knee_kinematics(table: PoseTable, marks: Landmarks, *,
             body that is present.
     """
     anterior, superior, lateral = _anatomy(table, side)
-    axes = table.axes
     sign = _flexed_sign(table)
+    knee = _knee_angles(table, sign, angles_deg)
+    varus = np.asarray(table.varus_rad, dtype=np.float64)
+    v0 = float(varus[int(np.argmin(np.abs(varus)))])
+    looks = [table.interpolate(math.radians(a * sign), v0) for a in knee.tolist()]
+    names = list(table.bodies)
+    values: dict[str, Floats] = {}
+    flags: dict[str, Bools] = {}
+    anatomy = (anterior, superior, lateral)
+    if tibia is not None and tibia in names:
+        if marks.tibia_centre is None:
+            raise ConfigError(f'no landmark for {tibia!r}; give the tibia point')
+        values.update(_tibia(table, _poses_of(looks, names.index(tibia)), marks, anatomy))
+        flags['tibia'] = np.array([bool(lk.nonconverged[names.index(tibia)]) for lk in looks])
+    if patella is not None and patella in names:
+        if marks.patella_centre is None:
+            raise ConfigError(f'no landmark for {patella!r}; give the patella point')
+        values.update(_patella(table, _poses_of(looks, names.index(patella)),
+                               marks.patella_centre, anatomy, sign))
+        flags['patella'] = np.array([bool(lk.nonconverged[names.index(patella)])
+                                     for lk in looks])
+    if not values:
+        raise ConfigError(f'the table has neither {tibia!r} nor {patella!r} (bodies: '
+                          f'{", ".join(names)}); name them with --tibia/--patella')
+    rotations = [q for q in ('tibia_ie', 'patella_tilt', 'patella_spin') if q in values]
+    first: dict[str, float] = {q: float(values[q][0]) for q in rotations}
+    values.update({q: _change(values[q]) for q in rotations})
+    return KneeKinematics(knee, math.degrees(v0), values, flags, first)
+
+
+def _knee_angles(table: PoseTable, sign: float, angles_deg: Sequence[float] | None) -> Floats:
+    """The knee flexion angles (deg, positive = flexed) to report: every grid value, or the
+    requested ones, which must lie inside the grid.
+
+    Raises:
+        ConfigError: an angle outside the grid or not finite, or no angle.
+    """
     grid_deg = np.degrees(np.asarray(table.flexion_rad, dtype=np.float64)) * sign
     if angles_deg is None:
         knee = np.sort(grid_deg)
     else:
         knee = np.asarray([float(a) for a in angles_deg], dtype=np.float64)
     lo, hi = float(grid_deg.min()), float(grid_deg.max())
-    bad = knee[(knee < lo - 1e-9) | (knee > hi + 1e-9) | ~np.isfinite(knee)]
+    tol = TOL.grid_range_deg
+    bad = knee[(knee < lo - tol) | (knee > hi + tol) | ~np.isfinite(knee)]
     if knee.size == 0 or bad.size:
         raise ConfigError(f'knee flexion angles {bad.tolist() or "[]"} deg are outside the '
                           f'table ({lo:g} to {hi:g} deg of flexion); pick angles inside it')
-    varus = np.asarray(table.varus_rad, dtype=np.float64)
-    v0 = float(varus[int(np.argmin(np.abs(varus)))])
-    looks = [table.interpolate(math.radians(a * sign), v0) for a in knee.tolist()]
-    names = list(table.bodies)
-    values: dict[str, Floats] = {}
-    flags: dict[str, Floats] = {}
+    return knee
+
+
+def _poses_of(looks: Sequence[Lookup], b: int) -> tuple[Floats, Floats]:
+    """Body `b`'s rotations (n, 3, 3) and positions (n, 3) m over the lookups."""
+    rot = matrix_from_quat(np.stack([lk.orientation_xyzw[b] for lk in looks]))
+    return rot, np.stack([lk.position_m[b] for lk in looks])
+
+
+def _tibia(table: PoseTable, poses: tuple[Floats, Floats], marks: Landmarks,
+           anatomy: tuple[Vec3, Vec3, Vec3]) -> dict[str, Floats]:
+    """The tibia's quantities (module docstring); its rotation still absolute."""
+    rot, pos = poses
+    anterior, superior, lateral = anatomy
+    axes = table.axes
     e1 = np.asarray(axes.flexion, dtype=np.float64)
     internal = -float(np.sign(np.cross(superior, anterior) @ lateral))
-    if tibia is not None and tibia in names:
-        b = names.index(tibia)
-        if marks.tibia_centre is None:
-            raise ConfigError(f'no landmark for {tibia!r}; give the tibia point')
-        rot = matrix_from_quat(np.stack([lk.orientation_xyzw[b] for lk in looks]))
-        pos = np.stack([lk.position_m[b] for lk in looks])
-        e3 = rot @ superior                                               # (n, 3)
-        e2 = np.cross(e3, e1)
-        e2 /= np.linalg.norm(e2, axis=1, keepdims=True)
-        e2 *= float(np.sign(np.cross(superior, e1) @ anterior))
+    e3 = rot @ superior                                               # (n, 3)
+    e2 = np.cross(e3, e1)
+    e2 /= np.linalg.norm(e2, axis=1, keepdims=True)
+    e2 *= float(np.sign(np.cross(superior, e1) @ anterior))
 
-        def at(point: Vec3) -> Floats:
-            return rot @ np.asarray(point) + pos                          # (n, 3)
+    def at(point: Vec3) -> Floats:
+        return rot @ np.asarray(point) + pos                          # (n, 3)
 
-        centre = at(marks.tibia_centre)
-        values['tibia_ap'] = _change(np.sum(centre * e2, axis=1)) * 1e3
-        values['tibia_pd'] = _change(np.sum(centre * e3, axis=1)) * 1e3
-        values['tibia_ml'] = _change(centre @ lateral) * 1e3
-        values['tibia_ie'] = np.degrees(axes.decompose(rot)[2]) * internal   # changed below
-        for key, point in (('tibia_ap_medial', marks.tibia_medial),
-                           ('tibia_ap_lateral', marks.tibia_lateral)):
-            if point is not None:
-                values[key] = _change(np.sum(at(point) * e2, axis=1)) * 1e3
-        flags['tibia'] = np.array([bool(lk.nonconverged[b]) for lk in looks])
-    if patella is not None and patella in names:
-        b = names.index(patella)
-        if marks.patella_centre is None:
-            raise ConfigError(f'no landmark for {patella!r}; give the patella point')
-        rot = matrix_from_quat(np.stack([lk.orientation_xyzw[b] for lk in looks]))
-        pos = np.stack([lk.position_m[b] for lk in looks])
-        flexion, spin, tilt = (np.degrees(a) for a in axes.decompose(rot))
-        values['patella_flexion'] = flexion * sign
-        values['patella_ml'] = _change((rot @ marks.patella_centre + pos) @ lateral) * 1e3
-        values['patella_tilt'] = tilt * -internal                             # changed below
-        values['patella_spin'] = -spin * float(np.sign(np.cross(anterior, superior) @ lateral))
-        flags['patella'] = np.array([bool(lk.nonconverged[b]) for lk in looks])
-    if not values:
-        raise ConfigError(f'the table has neither {tibia!r} nor {patella!r} (bodies: '
-                          f'{", ".join(names)}); name them with --tibia/--patella')
-    rotations = [q for q in ('tibia_ie', 'patella_tilt', 'patella_spin') if q in values]
-    first = {q: float(values[q][0]) for q in rotations}
-    values.update({q: _change(values[q]) for q in rotations})
-    return KneeKinematics(knee, math.degrees(v0), values, flags, first)
+    assert marks.tibia_centre is not None
+    centre = at(marks.tibia_centre)
+    values = {'tibia_ap': _change(np.sum(centre * e2, axis=1)) * 1e3,
+              'tibia_pd': _change(np.sum(centre * e3, axis=1)) * 1e3,
+              'tibia_ml': _change(centre @ lateral) * 1e3,
+              'tibia_ie': np.degrees(axes.decompose(rot)[2]) * internal}
+    for key, point in (('tibia_ap_medial', marks.tibia_medial),
+                       ('tibia_ap_lateral', marks.tibia_lateral)):
+        if point is not None:
+            values[key] = _change(np.sum(at(point) * e2, axis=1)) * 1e3
+    return values
+
+
+def _patella(table: PoseTable, poses: tuple[Floats, Floats], centre: Vec3,
+             anatomy: tuple[Vec3, Vec3, Vec3], sign: float) -> dict[str, Floats]:
+    """The patella's quantities (module docstring); its tilt and spin still absolute."""
+    rot, pos = poses
+    anterior, superior, lateral = anatomy
+    internal = -float(np.sign(np.cross(superior, anterior) @ lateral))
+    flexion, spin, tilt = (np.degrees(a) for a in table.axes.decompose(rot))
+    return {'patella_flexion': flexion * sign,
+            'patella_ml': _change((rot @ centre + pos) @ lateral) * 1e3,
+            'patella_tilt': tilt * -internal,
+            'patella_spin': -spin * float(np.sign(np.cross(anterior, superior) @ lateral))}
 
 
 def _change(values: Floats) -> Floats:
     """`values` minus its first element."""
     return np.asarray(values, dtype=np.float64) - float(values[0])
-
-
-def _body_of(quantity: str) -> str:
-    return quantity.split('_', 1)[0]
-
-
-def kinematics_rows(kin: KneeKinematics) -> list[dict[str, object]]:
-    """One dict per angle: knee_flexion_deg, each quantity, and the non-converged bodies."""
-    rows = []
-    for i, angle in enumerate(kin.knee_flexion_deg.tolist()):
-        row: dict[str, object] = {'knee_flexion_deg': angle}
-        row.update({q: float(v[i]) for q, v in kin.values.items()})
-        row['nonconverged'] = ' '.join(b for b, f in kin.nonconverged.items() if f[i])
-        rows.append(row)
-    return rows
-
-
-def kinematics_markdown(kin: KneeKinematics, digits: int = 1) -> str:
-    """A Markdown table, one row per angle; a value from a non-converged cell gets '*'."""
-    quantities = [q for q in QUANTITIES if q in kin.values]
-    head = ['knee flexion (deg)'] + [f'{QUANTITIES[q][1]} ({QUANTITIES[q][0]})'
-                                     for q in quantities]
-    lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
-    for i, angle in enumerate(kin.knee_flexion_deg.tolist()):
-        cells = [f'{angle:g}']
-        for q in quantities:
-            star = '*' if kin.nonconverged[_body_of(q)][i] else ''
-            cells.append(f'{kin.values[q][i]:.{digits}f}{star}')
-        lines.append('| ' + ' | '.join(cells) + ' |')
-    notes = ['changes from the first angle (patellar flexion: its own value)']
-    notes += [f'{QUANTITIES[q][1]} there: {v:.{digits}f} deg relative to the meshes as delivered'
-              for q, v in kin.at_first.items()]
-    if any(f.any() for f in kin.nonconverged.values()):
-        notes.append('* from a non-converged cell')
-    return '\n'.join(lines) + '\n\n' + '; '.join(notes) + '.\n'
-
-
-def write_kinematics_csv(kin: KneeKinematics, out: Path) -> Path:
-    """Write `kinematics_rows` as CSV, atomically."""
-    rows = kinematics_rows(kin)
-    text = io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator='\n')
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: (f'{v:.6g}' if isinstance(v, float) else v) for k, v in row.items()})
-    return write_text(out, text.getvalue())
-
-
-def write_text(out: Path, text: str) -> Path:
-    """Write `text` to `out` atomically (temp file in the same directory, then rename).
-
-    Raises:
-        TableError: the file cannot be written (nothing is left behind).
-    """
-    from .table import _atomic_write
-    data = text.encode()
-    try:
-        _atomic_write(Path(out), lambda fh: fh.write(data))
-    except OSError as err:
-        raise TableError(f'cannot write {out}: {err.strerror or err}; check that the '
-                         'directory exists and is writable') from err
-    return Path(out)
-
-
-def read_reference(path: Path) -> list[dict[str, object]]:
-    """Published values to draw beside a table's: CSV with columns source, quantity,
-    knee_flexion_deg, value (quantity one of QUANTITIES); other columns are kept.
-
-    Raises:
-        ConfigError: unreadable file, missing column, unknown quantity or a bad number.
-    """
-    try:
-        text = Path(path).read_text()
-    except OSError as err:
-        raise ConfigError(f'{path}: cannot read the reference CSV ({err.strerror}); '
-                          'check the path') from None
-    rows = list(csv.DictReader(line for line in text.splitlines()
-                               if line.strip() and not line.startswith('#')))
-    need = ('source', 'quantity', 'knee_flexion_deg', 'value')
-    out = []
-    for n, row in enumerate(rows, start=2):
-        missing = [k for k in need if not row.get(k)]
-        if missing:
-            raise ConfigError(f'{path}: row {n} lacks {missing[0]!r}; give columns '
-                              f'{", ".join(need)}')
-        if row['quantity'] not in QUANTITIES:
-            raise ConfigError(f'{path}: row {n}: unknown quantity {row["quantity"]!r}; use '
-                              f'one of {", ".join(QUANTITIES)}')
-        try:
-            angle, value = float(row['knee_flexion_deg']), float(row['value'])
-        except ValueError:
-            raise ConfigError(f'{path}: row {n}: knee_flexion_deg and value must be '
-                              'numbers') from None
-        out.append({**row, 'knee_flexion_deg': angle, 'value': value})
-    return out
-
-
-_MARKERS = ('o', 's', '^', 'D', 'v', 'P', 'X', '<', '>', 'h')
-
-
-def plot_kinematics(kin: KneeKinematics, out: Path, *, title: str,
-                    reference: Sequence[Mapping[str, object]] = (),
-                    others: Mapping[str, KneeKinematics] | None = None) -> Path:
-    """One panel per quantity against knee flexion; published values as markers.
-
-    Args:
-        kin: the table's kinematics (a line; non-converged points as red crosses).
-        out: PNG path.
-        title: figure title and the table's legend label.
-        reference: rows of `read_reference` (one marker style per source).
-        others: more tables' kinematics to draw as dashed lines, by label (their
-            non-converged cells are left out of the line).
-    """
-    from .plots import DPI, MARKER_RGB, write_png
-    quantities = [q for q in QUANTITIES if q in kin.values]
-    cols = 4
-    rows = -(-len(quantities) // cols)
-    fig = Figure(figsize=(4.0 * cols, 3.0 * rows + 1.2), dpi=DPI, layout='constrained')
-    FigureCanvasAgg(fig)
-    axs = fig.subplots(rows, cols, squeeze=False).ravel()
-    sources = sorted({str(r['source']) for r in reference})
-    style = {s: _MARKERS[i % len(_MARKERS)] for i, s in enumerate(sources)}
-    for ax, q in zip(axs, quantities):
-        unit_, label = QUANTITIES[q]
-        ax.plot(kin.knee_flexion_deg, kin.values[q], color='tab:blue', lw=1.8, label=title)
-        bad = kin.nonconverged[_body_of(q)]
-        if bad.any():
-            ax.plot(kin.knee_flexion_deg[bad], kin.values[q][bad], 'x', color=MARKER_RGB,
-                    ms=7, mew=2, label='not converged')
-        for k, (name, other) in enumerate((others or {}).items()):
-            if q in other.values:       # converged cells only: a gap where it did not
-                shown = np.where(other.nonconverged[_body_of(q)], np.nan, other.values[q])
-                ax.plot(other.knee_flexion_deg, shown, '--', lw=1.2,
-                        color=('tab:orange', 'tab:green', 'tab:purple')[k % 3],
-                        label=f'{name} (converged cells)')
-        for src in sources:
-            pts = [(float(r['knee_flexion_deg']), float(r['value'])) for r in reference
-                   if r['source'] == src and r['quantity'] == q]    # type: ignore[arg-type]
-            if pts:
-                x, y = zip(*pts)
-                ax.plot(x, y, linestyle='none', marker=style[src], color='0.25', ms=5,
-                        label=src)
-        ax.set_title(label, fontsize=9)
-        ax.set_xlabel('knee flexion [deg]')
-        ax.set_ylabel(f'[{unit_}]')
-        ax.grid(True, lw=0.5, alpha=0.5)
-        ax.legend(fontsize=6)
-    for ax in axs[len(quantities):]:
-        ax.set_visible(False)
-    fig.suptitle(f'{title} (varus {kin.varus_deg:g} deg)')
-    return write_png(fig, Path(out))

@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from .errors import ConfigError, SettleError, TableError
-from .geometry import KneeAxes, pose_from, rotation_about, unit
+from .geometry import KneeAxes, pose_from, rotation_about, TOL, unit
 from .meshes import UNIT_SCALE, Units
 from .settle import SettleParams
 from .typed import Floats, Pose
@@ -56,6 +56,10 @@ __all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values', 'neutral_pose
 class BodySpec:
     """One body of the knee; `push` and fractions matter for moving bodies only.
 
+    The defaults are a config's: a body without `push` is pushed along +Y, the long axis of
+    the knee frame (Y superior), as a tibia below the femur is - unlike `SettleParams.push`,
+    the default of a single `kneeseat settle`, which pushes along -Y. A body follows the
+    whole flexion and varus unless its fractions say otherwise.
     `mesh` and `display_mesh` are the first collision and display mesh; `meshes` and
     `display_meshes` hold every one (filled from `mesh`/`display_mesh` when not given).
     """
@@ -116,7 +120,8 @@ class KneeConfig:
 
     def push(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3,) unit push direction of `body` at a grid cell, reference frame."""
-        return self.push_turn(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+        push: Floats = self.push_turn(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+        return push
 
     def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
         """Settle parameters for `body` at a grid cell."""
@@ -229,7 +234,7 @@ def grid_values(spec: Any, where: str) -> Floats:
     if step == 0:
         raise ConfigError(f'{where}: step must not be zero')
     count = abs(stop - start) / abs(step)
-    if abs(count - round(count)) > 1e-6:
+    if abs(count - round(count)) > TOL.grid_step:
         raise ConfigError(f'{where}: step {abs(step):g} does not divide {start:g}..{stop:g}; '
                           'choose a step that lands on stop')
     if round(count) + 1 > 100_000:
@@ -291,12 +296,14 @@ def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
                     display_meshes=displays)
     if not moving:
         return spec
+    given: dict[str, Any] = {}       # keys left out keep BodySpec's defaults
+    if 'push' in data:
+        given['push'] = _vector(data['push'], f'{where}.push')
+    for key in ('flexion_fraction', 'varus_fraction'):
+        if key in data:
+            given[key] = _number(data[key], f'{where}.{key}')
     push_fraction = data.get('push_flexion_fraction')
-    return replace(spec, push=_vector(data.get('push', (0.0, 1.0, 0.0)), f'{where}.push'),
-                   flexion_fraction=_number(data.get('flexion_fraction', 1.0),
-                                            f'{where}.flexion_fraction'),
-                   varus_fraction=_number(data.get('varus_fraction', 1.0),
-                                          f'{where}.varus_fraction'),
+    return replace(spec, **given,
                    locked_slide=(None if data.get('locked_slide') is None else
                                  _vector(data['locked_slide'], f'{where}.locked_slide')),
                    envelope=(None if data.get('envelope') is None else
@@ -334,7 +341,7 @@ def _settle_params(data: Any) -> SettleParams:
             max_slide_m=float(data.get('max_slide_m', _DEFAULTS.max_slide_m)),
             max_spin_rad=(_DEFAULTS.max_spin_rad if data.get('max_spin_deg') is None
                           else math.radians(float(data['max_spin_deg']))),
-            method=data.get('method', 'default'))
+            method=data.get('method', _DEFAULTS.method))
     except (TypeError, ValueError) as err:
         raise ConfigError(f'settle: {err}') from None
     try:

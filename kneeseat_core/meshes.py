@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import cast, Literal, Sequence
 
 import numpy as np
 import trimesh
@@ -77,7 +77,7 @@ def load_meshes(paths: Sequence[Path | str], units: Units = 'm',
     meshes = [load_mesh(p, units, quiet) for p in paths]
     if len(meshes) == 1:
         return meshes[0]
-    return trimesh.util.concatenate(meshes)
+    return cast(trimesh.Trimesh, trimesh.util.concatenate(meshes))   # meshes in, a mesh out
 
 
 def check_mesh_files(paths: Sequence[Path | str], units: Units = 'm') -> None:

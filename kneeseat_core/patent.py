@@ -18,6 +18,7 @@ slide/rotate cycle), leaving the envelope or the iteration cap ends "not converg
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 import math
 
 import numpy as np
@@ -68,80 +69,122 @@ def _component_resultant(search: Search, contacts: Contacts) -> Floats:
         for part in (comp[comp > 0], comp[comp < 0]):
             if len(part):
                 total[axis] += part.mean()
-    return total[0] * search.e1 + total[1] * search.e2
+    out: Floats = total[0] * search.e1 + total[1] * search.e2
+    return out
 
 
 def run_patent(search: Search, bracket: Bracket) -> SettleResult:
     """The literal loop of FIGS. 2-16 from the first exact contact `bracket`."""
     p = search.params
-    pose, contacts = bracket.free, search.contacts(bracket.touching)
-    motion = search.push
-    rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
-        else math.radians(1.0)
-    seen: dict[bytes, int] = {}
+    state = _Patent(search, bracket.free, search.contacts(bracket.touching), search.push,
+                    p.rotation_resolution_rad if p.rotation_resolution_rad is not None
+                    else math.radians(1.0))
     while search.iterations < p.max_iterations:
         search.iterations += 1
-        key = np.round(pose[:3, :] / (p.resolution_m * 0.5)).astype(np.int64).tobytes()
-        if key in seen and search.iterations - seen[key] > 1:
-            return search.result(pose, Status.WEDGED, 'wedged: the slide and the rotation are '
-                                 'both blocked and the method cycles between the same poses',
-                                 contacts)
-        seen[key] = search.iterations
-        facing = search.facing(contacts, motion)
+        if state.cycled():
+            return search.result(state.pose, Status.WEDGED, 'wedged: the slide and the '
+                                 'rotation are both blocked and the method cycles between '
+                                 'the same poses', state.contacts)
+        facing = search.facing(state.contacts, state.motion)
         if len(facing.points) == 0:
-            facing = search.facing(contacts, search.push)
+            facing = search.facing(state.contacts, search.push)
         if len(facing.points) == 0:
-            return search.result(pose, Status.FAILED, 'no usable contact: every normal is '
-                                 'back-facing', contacts)
+            return search.result(state.pose, Status.FAILED, 'no usable contact: every normal '
+                                 'is back-facing', state.contacts)
         found = _torque_centre(search, facing)
         if found is not None:
-            centre, sign = found
-            radius = max(search.radius_about(pose, centre), p.step_m)
-            angle = p.rotation_step_rad if p.rotation_step_rad is not None \
-                else p.step_m / radius
-            base = pose
-
-            def turn(s: float, base: Pose = base, centre: Floats = centre, sign: float = sign,
-                     angle: float = angle) -> Pose:
-                return rotated(base, rotation_about(search.push, sign * angle * s), centre)
-
-            if search.collides(turn(1.0)):
-                if angle > rot_res:
-                    lo, hi = search.bisect(turn, rot_res / angle)
-                    pose, contacts = turn(lo), search.contacts(turn(hi))
-                # else: the rotation is dropped (FIG. 7 never runs below resolution)
-                motion = np.cross(search.push, contacts.points.mean(axis=0) - centre) \
-                    if len(contacts.points) else search.push
-                motion = motion * sign if np.linalg.norm(motion) > 0 else search.push
+            if state.rotate(*found):
                 continue
-            pose = turn(1.0)
         else:
-            slide = _component_resultant(search, facing) * p.step_m
-            if p.locked_slide is not None:
-                slide -= (slide @ search.e1) * search.e1
-            if np.linalg.norm(slide) < p.resolution_m:
-                return search.result(pose, Status.REST, 'stable: the resultant of the projected '
-                                     'normals is below the resolution', facing)
-            base = pose
-
-            def shift(s: float, base: Pose = base, slide: Floats = slide) -> Pose:
-                return translated(base, s * slide)
-
-            if search.collides(shift(1.0)):
-                length = float(np.linalg.norm(slide))
-                lo, hi = search.bisect(shift, p.resolution_m / length)
-                pose, contacts = shift(lo), search.contacts(shift(hi))
-                motion = slide / length
+            stopped = state.slide(facing)
+            if isinstance(stopped, SettleResult):
+                return stopped
+            if stopped:
                 continue
-            pose = shift(1.0)
-        # a motion without collision: translate along Δ again
-        dropped = search.drop(pose, p.resolution_m)
+        ended = state.fall()
+        if ended is not None:
+            return ended
+    return search.result(state.pose, Status.CAP, f'iteration cap ({p.max_iterations}) reached',
+                         state.contacts)
+
+
+@dataclass(slots=True, eq=False)
+class _Patent:
+    """The state of the literal loop: pose, contacts there, the last motion's direction."""
+
+    search: Search
+    pose: Pose
+    contacts: Contacts
+    motion: Floats
+    rot_res: float                       # rotation resolution (rad)
+    seen: dict[bytes, int] = field(default_factory=dict)   # pose key -> iteration
+
+    def cycled(self) -> bool:
+        """The pose repeats one seen before the last iteration (the slide/rotate cycle)."""
+        s, p = self.search, self.search.params
+        key = np.round(self.pose[:3, :] / (p.resolution_m * 0.5)).astype(np.int64).tobytes()
+        if key in self.seen and s.iterations - self.seen[key] > 1:
+            return True
+        self.seen[key] = s.iterations
+        return False
+
+    def rotate(self, centre: Floats, sign: float) -> bool:
+        """Step 3: turn about the axis through `centre` parallel to the push by the arc of
+        one step at the farthest vertex; True when it collided (then stopped at contact,
+        or dropped below the rotation resolution: FIG. 7 never runs below it)."""
+        s, p = self.search, self.search.params
+        radius = max(s.radius_about(self.pose, centre), p.step_m)
+        angle = p.rotation_step_rad if p.rotation_step_rad is not None else p.step_m / radius
+        base = self.pose
+
+        def turn(f: float) -> Pose:
+            return rotated(base, rotation_about(s.push, sign * angle * f), centre)
+
+        if not s.collides(turn(1.0)):
+            self.pose = turn(1.0)
+            return False
+        if angle > self.rot_res:
+            lo, hi = s.bisect(turn, self.rot_res / angle)
+            self.pose, self.contacts = turn(lo), s.contacts(turn(hi))
+        motion = np.cross(s.push, self.contacts.points.mean(axis=0) - centre) \
+            if len(self.contacts.points) else s.push
+        self.motion = motion * sign if np.linalg.norm(motion) > 0 else s.push
+        return True
+
+    def slide(self, facing: Contacts) -> SettleResult | bool:
+        """Step 4: slide by the step times the component-wise resultant; the rest when that
+        slide is shorter than the resolution, True when it collided (stopped at contact)."""
+        s, p = self.search, self.search.params
+        slide = _component_resultant(s, facing) * p.step_m
+        if p.locked_slide is not None:
+            slide -= (slide @ s.e1) * s.e1
+        if np.linalg.norm(slide) < p.resolution_m:
+            return s.result(self.pose, Status.REST, 'stable: the resultant of the projected '
+                            'normals is below the resolution', facing)
+        base = self.pose
+
+        def shift(f: float) -> Pose:
+            return translated(base, f * slide)
+
+        if not s.collides(shift(1.0)):
+            self.pose = shift(1.0)
+            return False
+        length = float(np.linalg.norm(slide))
+        lo, hi = s.bisect(shift, p.resolution_m / length)
+        self.pose, self.contacts = shift(lo), s.contacts(shift(hi))
+        self.motion = slide / length
+        return True
+
+    def fall(self) -> SettleResult | None:
+        """Step 5: after a motion without collision, translate along the push again; the end
+        when contact is lost or the pose left the envelope."""
+        s, p = self.search, self.search.params
+        dropped = s.drop(self.pose, p.resolution_m)
         if dropped is None:
-            return search.result(pose, Status.LOST, LOST_CONTACT, contacts)
-        pose, contacts = dropped.free, search.contacts(dropped.touching)
-        motion = search.push
-        too_far = search.beyond_envelope(pose)
+            return s.result(self.pose, Status.LOST, LOST_CONTACT, self.contacts)
+        self.pose, self.contacts = dropped.free, s.contacts(dropped.touching)
+        self.motion = s.push
+        too_far = s.beyond_envelope(self.pose)
         if too_far:
-            return search.result(pose, Status.ENVELOPE, too_far, contacts)
-    return search.result(pose, Status.CAP, f'iteration cap ({p.max_iterations}) reached',
-                         contacts)
+            return s.result(self.pose, Status.ENVELOPE, too_far, self.contacts)
+        return None

@@ -28,6 +28,7 @@ from typing import Sequence
 import fcl
 import numpy as np
 from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
 import trimesh
 
 from .typed import Floats, Pose
@@ -75,6 +76,14 @@ def _bvh(meshes: Sequence[trimesh.Trimesh]) -> fcl.BVHModel:
     model.addSubModel(vertices, faces)
     model.endModel()
     return model
+
+
+@dataclass(slots=True)
+class _Best:
+    """The highest travel a climb has found so far, and the lateral state that gave it."""
+
+    value: float
+    state: Floats
 
 
 class Referee:
@@ -132,10 +141,7 @@ class Referee:
         """`base` slid by state[0] a + state[1] b and spun by state[2] / arm about the push."""
         u, v, w = np.asarray(state, dtype=np.float64) * self._free
         centre = base[:3, :3] @ self._centroid + base[:3, 3]
-        k = self.push
-        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-        phi = w / arm
-        rot = np.eye(3) + math.sin(phi) * kx + (1.0 - math.cos(phi)) * (kx @ kx)
+        rot = Rotation.from_rotvec((w / arm) * self.push).as_matrix()
         out = np.eye(4)
         out[:3, :3] = rot @ base[:3, :3]
         out[:3, 3] = rot @ (base[:3, 3] - centre) + centre + u * self._a + v * self._b
@@ -193,7 +199,7 @@ class Referee:
         if not math.isfinite(base_travel):
             raise ValueError('the pose has no contact along the push; nothing to judge')
         evaluations = 1
-        best = {'value': base_travel, 'state': np.zeros(3)}
+        best = _Best(base_travel, np.zeros(3))
 
         def value(z: Floats) -> float:
             nonlocal evaluations
@@ -206,29 +212,29 @@ class Referee:
             t = self.travel(cand)
             if t == math.inf:
                 t = _OFF
-            if t > best['value']:
-                best['value'], best['state'] = t, state
+            if t > best.value:
+                best.value, best.state = t, state
             return -t
 
         start = np.zeros(len(self._dims))
         while evaluations < max_evaluations:
-            before = best['value']
+            before = best.value
             simplex = np.vstack([start, start + 2.0 * np.eye(len(start))])
             minimize(value, start, method='Nelder-Mead',
                      options={'initial_simplex': simplex, 'xatol': 0.05, 'fatol': 0.02,
                               'maxfev': max_evaluations - evaluations})
-            if best['value'] >= _OFF or best['value'] - before <= 0.02 * res:
+            if best.value >= _OFF or best.value - before <= 0.02 * res:
                 break
-            start = best['state'][self._dims] / res
-        state = best['state']
+            start = best.state[self._dims] / res
+        state = best.state
         moved = self.lateral(pose, state, arm)
-        gain = best['value'] - base_travel
-        if best['value'] >= _OFF:
+        gain = best.value - base_travel
+        if best.value >= _OFF:
             gain = math.inf
         slide = float(np.hypot(state[0] * self._free[0], state[1]))
         return Verdict(gain, slide, float(state[2] / arm), evaluations,
                        self.queries - queries_before,
-                       self._along(moved, best['value'] if math.isfinite(gain) else 0.0))
+                       self._along(moved, best.value if math.isfinite(gain) else 0.0))
 
     def _inside(self, pose: Pose, envelope: Envelope) -> bool:
         anchor = envelope.anchor

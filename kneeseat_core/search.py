@@ -15,9 +15,10 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from .collision import CollisionPair, RigidBody
+from .collision import CollisionPair
 from .errors import SettleError
 from .geometry import rotation_about, unit
+from .patches import contact_patches
 from .status import AT_REST, Status
 from .typed import Floats, Pose
 
@@ -231,6 +232,55 @@ class Search:
                     'near the start')
         return None
 
+    def envelope_mask(self, pose: Pose, margin: float, arm: float,
+                      direction: Floats) -> Floats:
+        """Where the envelope holds: `direction` (slide e1, e2, arc) without the parts that
+        leave it from `pose` (within `margin` m of a bound; `arm`: m of arc per radian)."""
+        p = self.params
+        if not p.envelope_holds:
+            return direction
+        slide, spin = self.offset(pose)
+        out = direction.copy()
+        norm = float(np.linalg.norm(slide))
+        if norm >= p.max_slide_m - margin and norm > 0.0:
+            radial = slide / norm
+            outward = float(out[:2] @ radial)
+            if outward > 0.0:
+                out[:2] -= outward * radial
+        if abs(spin) >= p.max_spin_rad - margin / arm and out[2] * spin > 0.0:
+            out[2] = 0.0
+        return out
+
+    def limit_to_envelope(self, pose: Pose, arm: float, direction: Floats,
+                          length: float) -> float:
+        """The longest move from `pose` along `direction` (up to `length`) that stays inside
+        an envelope that holds (`length` itself otherwise)."""
+        p = self.params
+        if not p.envelope_holds:
+            return length
+        slide, spin = self.offset(pose)
+        a, b = direction[:2], slide
+        aa = float(a @ a)
+        if aa > 0.0:                       # |b + t a| <= max_slide
+            bb, ab = float(b @ b), float(a @ b)
+            disc = ab * ab - aa * (bb - p.max_slide_m ** 2)
+            if disc >= 0.0:
+                length = min(length, max((-ab + math.sqrt(disc)) / aa, 0.0))
+        if direction[2] != 0.0:
+            room = p.max_spin_rad - math.copysign(1.0, direction[2]) * spin
+            length = min(length, max(room * arm / abs(direction[2]), 0.0))
+        return length
+
+    def on_boundary(self, pose: Pose, margin: float, arm: float) -> str | None:
+        """Which envelope bound `pose` rests on (within `margin` m), if any."""
+        p = self.params
+        slide, spin = self.offset(pose)
+        if float(np.linalg.norm(slide)) >= p.max_slide_m - margin:
+            return f'slide {p.max_slide_m * 1e3:g} mm'
+        if abs(spin) >= p.max_spin_rad - margin / arm:
+            return f'spin {math.degrees(p.max_spin_rad):g} deg'
+        return None
+
     # ---- collision ----------------------------------------------------------------------
     def collides(self, pose: Pose) -> bool:
         """Boolean collision query."""
@@ -242,27 +292,10 @@ class Search:
         return Contacts(self.pair.fixed.centres[ids], self.pair.fixed.normals[ids])
 
     def patches(self, pose: Pose) -> Contacts:
-        """The contact patches at `pose`, one (point, normal) each.
-
-        The contacts are the points where the surfaces cross (python-fcl), each with the
-        reference's normal interpolated there from its vertex normals; contacts on
-        connected reference triangles form a patch, split where its normals spread more
-        than `PATCH_SPREAD_RAD` (a crease), and each patch counts once: its mean point
-        and mean normal stand for the one contact point that a deeper look would find.
-        """
+        """The contact patches at `pose`, one (point, normal) each (D7,
+        `kneeseat_core.patches.contact_patches`)."""
         ids, points = self.pair.contact_points(pose)
-        if len(ids) == 0:
-            return Contacts.empty()
-        fixed = self.pair.fixed
-        normals = _interpolated_normals(fixed, ids, points)
-        labels = _components(fixed, ids)
-        out_p, out_n = [], []
-        for label in range(int(labels.max()) + 1):
-            sel = labels == label
-            for pts, nrm in _split(points[sel], normals[sel]):
-                out_p.append(pts)
-                out_n.append(nrm)
-        return Contacts(np.array(out_p), np.array(out_n))
+        return Contacts(*contact_patches(self.pair.fixed, ids, points))
 
     def facing(self, contacts: Contacts, motion: Floats) -> Contacts:
         """Drop back-facing normals: normal · motion >= 0 (patent FIG. 5)."""
@@ -278,6 +311,17 @@ class Search:
         while hi - lo > tol_fraction:
             mid = 0.5 * (lo + hi)
             if self.collides(move(mid)):
+                hi = mid
+            else:
+                lo = mid
+        return lo, hi
+
+    def bisect_along(self, pose: Pose, lo: float, hi: float, tol_m: float) -> tuple[float, float]:
+        """Dichotomy on the travel along Δ from `pose`: free at `lo`, touching at `hi` (m);
+        returns (free, touching) at most `tol_m` apart."""
+        while hi - lo > tol_m:
+            mid = 0.5 * (lo + hi)
+            if self.collides(translated(pose, mid * self.push)):
                 hi = mid
             else:
                 lo = mid
@@ -351,12 +395,7 @@ class Search:
             elif lo is None:      # retreat
                 t = hi - width
             width *= 2.0
-        while hi - lo > tol_m:
-            mid = 0.5 * (lo + hi)
-            if self.collides(translated(pose, mid * self.push)):
-                hi = mid
-            else:
-                lo = mid
+        lo, hi = self.bisect_along(pose, lo, hi, tol_m)
         return Bracket(translated(pose, lo * self.push), translated(pose, hi * self.push))
 
     def result(self, pose: Pose, status: int, reason: str, contacts: Contacts,
@@ -366,74 +405,3 @@ class Search:
                             self.iterations, self.pair.checks, contacts,
                             time.perf_counter() - self.started, self.pair.fcl_s,
                             self.backed_out_m, status, proof_checks, proof_s)
-
-
-# Normals within a patch that spread more than this from its mean split it (a crease).
-PATCH_SPREAD_RAD = math.radians(12.0)
-
-
-def _interpolated_normals(body: RigidBody, ids: np.ndarray, points: Floats) -> Floats:
-    """Vertex normals of triangles `ids` interpolated (barycentric) at `points` (k, 3)."""
-    tri = body.faces[ids]
-    a, b, c = (body.vertices[tri[:, i]] for i in range(3))
-    v0, v1, v2 = b - a, c - a, points - a
-    d00, d01, d11 = (np.einsum('ij,ij->i', x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
-    d20, d21 = np.einsum('ij,ij->i', v2, v0), np.einsum('ij,ij->i', v2, v1)
-    denom = d00 * d11 - d01 * d01
-    denom = np.where(np.abs(denom) > 1e-30, denom, 1.0)
-    wb = (d11 * d20 - d01 * d21) / denom
-    wc = (d00 * d21 - d01 * d20) / denom
-    w = np.clip(np.stack([1.0 - wb - wc, wb, wc], axis=1), 0.0, None)
-    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
-    vn = body.vertex_normals
-    n = w[:, 0:1] * vn[tri[:, 0]] + w[:, 1:2] * vn[tri[:, 1]] + w[:, 2:3] * vn[tri[:, 2]]
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    bad = length[:, 0] < 1e-9
-    n[bad] = body.normals[ids[bad]]
-    length[bad] = 1.0
-    return n / length
-
-
-def _components(body: RigidBody, ids: np.ndarray) -> np.ndarray:
-    """Label (k,) of the connected set of reference triangles each contact lies on."""
-    unique, inverse = np.unique(ids, return_inverse=True)
-    indptr, indices = body.adjacency
-    starts, ends = indptr[unique], indptr[unique + 1]
-    counts = ends - starts
-    rows = np.repeat(np.arange(len(unique)), counts)
-    flat = np.repeat(starts - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts) \
-        + np.arange(int(counts.sum()))
-    cols = np.searchsorted(unique, indices[flat])
-    cols = np.minimum(cols, len(unique) - 1)
-    keep = unique[cols] == indices[flat]
-    rows, cols = rows[keep], cols[keep]
-    # label propagation: every triangle takes the smallest label among its neighbours
-    # until nothing changes (a few rounds: contact patches are small)
-    labels = np.arange(len(unique))
-    while True:
-        smaller = np.minimum(labels[rows], labels[cols])
-        updated = labels.copy()
-        np.minimum.at(updated, rows, smaller)
-        np.minimum.at(updated, cols, smaller)
-        updated = updated[updated]
-        if np.array_equal(updated, labels):
-            break
-        labels = updated
-    return np.unique(labels, return_inverse=True)[1][inverse]
-
-
-def _split(points: Floats, normals: Floats, depth: int = 0) -> list[tuple[Floats, Floats]]:
-    """A patch as one (mean point, mean normal), or split in two across its widest normal
-    spread while the normals spread more than PATCH_SPREAD_RAD (at most 8 parts)."""
-    mean = normals.sum(axis=0)
-    mean /= max(float(np.linalg.norm(mean)), 1e-12)
-    if len(points) == 1 or depth >= 3 or \
-            float(np.min(normals @ mean)) >= math.cos(PATCH_SPREAD_RAD):
-        return [(points.mean(axis=0), mean)]
-    deviation = normals - np.outer(normals @ mean, mean)
-    _, _, vt = np.linalg.svd(deviation, full_matrices=False)
-    side = deviation @ vt[0] > 0.0
-    if side.all() or not side.any():
-        return [(points.mean(axis=0), mean)]
-    return (_split(points[side], normals[side], depth + 1)
-            + _split(points[~side], normals[~side], depth + 1))

@@ -43,7 +43,9 @@ named where it is made:
      with the reference's vertex normals interpolated there; contacts on connected
      triangles form one patch (split at creases) and count once, by their mean point and
      normal, so a conforming patch straddling the rest does not balance the hull by itself.
-The independent check of "at rest" is `kneeseat_core.referee` (`kneeseat verify`).
+The independent check of "at rest" is `kneeseat_core.referee` (`kneeseat verify`). Why
+each departure is made, and what the letter does on real meshes: docs/design.md, "The
+settle".
 """
 from __future__ import annotations
 

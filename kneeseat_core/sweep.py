@@ -27,13 +27,9 @@ turned by the attitude (`knee.neutral_pose`). So a chain cannot drift farther fr
 joint than the envelope. A cell whose warm-started settle does not converge is settled
 once more from the cold start (the neutral pose backed off one step) and only a converged
 result seeds the next cell.
-Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`; a
-body made of several meshes is loaded as one rigid body. The parent validates every mesh
-once before the sweep (warnings such as an open cartilage sheet appear once per mesh), so
-workers load quietly. The spec carries each mesh file's SHA-256, so a worker that cannot
-read the paths (a remote Dask worker) finds the bytes shipped to it by content
-(`register_mesh_copy`, kneeseat_core/cluster.py), and a long-lived worker never reuses
-bodies of a mesh file that has since changed.
+Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`
+(`kneeseat_core.scene`). The parent validates every mesh once before the sweep (warnings
+such as an open cartilage sheet appear once per mesh), so workers load quietly.
 """
 from __future__ import annotations
 
@@ -44,94 +40,28 @@ import math
 import multiprocessing
 import os
 from pathlib import Path
-import threading
 import time
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, ParamSpec, Sequence, TypeVar
 
 import numpy as np
 
-from .collision import RigidBody
 from .errors import NoContactError, SettleError
-from .geometry import pose_from, quat_from_matrix
+from .files import file_sha256
+from .geometry import pose_from, quat_from_matrix, TOL
 from .knee import KneeConfig, neutral_pose
-from .meshes import check_mesh_files, load_meshes
+from .meshes import check_mesh_files
+from .scene import scene_bodies, SceneSpec
 from .settle import settle, SettleParams
 from .status import Status
-from .table import file_sha256
-from .typed import Floats, Pose
+from .typed import Bools, Floats, Ints, Pose
 
-__all__ = ['SceneSpec', 'ChainJob', 'ChainResult', 'SweepResult', 'InlineExecutor',
-           'run_chain', 'sweep', 'default_workers', 'process_executor', 'scene_bodies',
-           'carried', 'warm_start', 'cold_start',
-           'register_mesh_copy', 'scene_builds']
+__all__ = ['ChainJob', 'ChainResult', 'SweepResult', 'InlineExecutor', 'run_chain', 'sweep',
+           'default_workers', 'process_executor', 'carried', 'warm_start', 'cold_start']
 
 log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True, slots=True)
-class SceneSpec:
-    """What a worker needs to rebuild the rigid bodies (small, picklable, hashable).
-
-    A body's meshes are one path, or a tuple of paths combined into one rigid body.
-    """
-
-    reference_mesh: str | tuple[str, ...]
-    body_meshes: tuple[str | tuple[str, ...], ...]
-    units: str
-    mesh_sha256: tuple[str, ...] = ()   # hex, one per file of `paths()`; () = paths only
-
-    def groups(self) -> tuple[tuple[str, ...], ...]:
-        """The mesh files of each body: the reference first, then the moving bodies."""
-        return tuple((g,) if isinstance(g, str) else tuple(g)
-                     for g in (self.reference_mesh, *self.body_meshes))
-
-    def paths(self) -> tuple[str, ...]:
-        """Every mesh file, in body order (the order of `mesh_sha256`)."""
-        return tuple(p for g in self.groups() for p in g)
-
-
-_SCENES: dict[SceneSpec, tuple[RigidBody, tuple[RigidBody, ...]]] = {}
-_SCENES_LOCK = threading.Lock()     # Dask workers may run several chains in threads
-_MESH_COPIES: dict[str, str] = {}   # SHA-256 -> local file with those bytes
-_SCENE_BUILDS = 0
-
-
-def register_mesh_copy(sha256: str, path: str) -> None:
-    """Let `scene_bodies` load the mesh with content `sha256` from local file `path`.
-
-    Used on Dask workers, where the SceneSpec's paths may not exist (kneeseat_core/cluster.py).
-    A registered copy is preferred to the spec's path: it is the content the client hashed.
-    """
-    _MESH_COPIES[sha256] = path
-
-
-def scene_builds() -> int:
-    """How many scenes this process has built (meshes loaded, BVHs made) so far."""
-    return _SCENE_BUILDS
-
-
-def _mesh_source(spec: SceneSpec, index: int, path: str) -> str:
-    if index < len(spec.mesh_sha256):
-        return _MESH_COPIES.get(spec.mesh_sha256[index], path)
-    return path
-
-
-def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
-    """The rigid bodies of `spec`, built once per process and cached (loaded quietly)."""
-    global _SCENE_BUILDS
-    with _SCENES_LOCK:
-        if spec not in _SCENES:
-            groups, bodies_list, index = spec.groups(), [], 0
-            for group in groups:
-                sources = [_mesh_source(spec, index + k, p) for k, p in enumerate(group)]
-                index += len(group)
-                bodies_list.append(RigidBody.from_mesh(
-                    load_meshes(sources, spec.units, quiet=True)))  # type: ignore[arg-type]
-            bodies = tuple(bodies_list)
-            _SCENES.clear()          # one scene per worker at a time keeps memory flat
-            _SCENES[spec] = (bodies[0], bodies[1:])
-            _SCENE_BUILDS += 1
-        return _SCENES[spec]
+_P = ParamSpec('_P')
+_T = TypeVar('_T')
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -156,9 +86,9 @@ class ChainResult:
     body: int
     cells: tuple[tuple[int, int], ...]
     poses: Floats             # (n, 4, 4)
-    converged: Floats         # (n,) bool
-    iterations: Floats        # (n,) int
-    status: Floats            # (n,) int, `Status` codes
+    converged: Bools          # (n,)
+    iterations: Ints          # (n,)
+    status: Ints              # (n,) `Status` codes
     collision_checks: int
     reasons: tuple[str, ...]
     elapsed_s: float
@@ -231,9 +161,9 @@ class SweepResult:
 
     position_m: Floats          # (B, F, V, 3)
     orientation_xyzw: Floats    # (B, F, V, 4)
-    converged: Floats           # (B, F, V) bool
-    iterations: Floats          # (B, F, V) int
-    status: Floats              # (B, F, V) int8, `Status` codes
+    converged: Bools            # (B, F, V)
+    iterations: Ints            # (B, F, V)
+    status: Ints                # (B, F, V) int8, `Status` codes
     collision_checks: int
     wall_s: float
     mesh_sha256: tuple[str, ...]    # hex, of the mesh files swept (SceneSpec.paths order)
@@ -251,8 +181,10 @@ class SweepResult:
 class InlineExecutor(Executor):
     """A `concurrent.futures.Executor` that runs each task at submit time, in-process."""
 
-    def submit(self, fn: Callable, /, *args, **kwargs) -> Future:  # type: ignore[override]
-        future: Future = Future()
+    def submit(self, fn: Callable[_P, _T], /, *args: _P.args,
+               **kwargs: _P.kwargs) -> Future[_T]:
+        """Run `fn(*args, **kwargs)` now; its result or exception is in the future."""
+        future: Future[_T] = Future()
         try:
             future.set_result(fn(*args, **kwargs))
         except BaseException as err:  # noqa: B902 - handed to the caller via the future
@@ -284,7 +216,7 @@ def _outward(n: int, centre: int) -> tuple[list[int], list[int]]:
 
 
 def sweep(config: KneeConfig, executor: Executor,
-          progress: Callable[[int], None] | None = None) -> SweepResult:
+          progress: Callable[[int], object] | None = None) -> SweepResult:
     """Settle every (body, flexion, varus) cell of `config` on `executor`.
 
     Args:
@@ -293,90 +225,130 @@ def sweep(config: KneeConfig, executor: Executor,
         All poses in table layout; non-converged cells are flagged, never hidden.
     """
     started = time.perf_counter()
-    flex, var = config.flexion_rad, config.varus_rad
-    nb, nf, nv = len(config.bodies), len(flex), len(var)
-    groups = [tuple(str(m) for m in spec.meshes) for spec in (config.reference, *config.bodies)]
-    scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
-                      tuple(file_sha256(Path(p)) for g in groups for p in g))
-    check_mesh_files(scene.paths(), config.units)   # once here; workers load quietly
-    f0 = int(np.argmin(np.abs(flex)))
-    v0 = int(np.argmin(np.abs(var)))
-    poses = np.zeros((nb, nf, nv, 4, 4))
-    converged = np.zeros((nb, nf, nv), dtype=bool)
-    iterations = np.zeros((nb, nf, nv), dtype=np.int64)
-    status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
-    backed = np.zeros((nb, nf, nv))
-    failures: list[str] = []
-    checks = 0
+    run = _Sweep(config, progress)
+    run.collect([executor.submit(run_chain, j) for j in run.centre_jobs()])
+    run.anchor_at_centres()
+    run.collect([executor.submit(run_chain, j) for j in run.spine_jobs()])
+    run.collect([executor.submit(run_chain, j) for j in run.rib_jobs()])
+    run.copy_across_varus()
+    return run.result(time.perf_counter() - started)
 
-    centre_attitudes = [config.attitude(spec, flex[f0], var[v0]) for spec in config.bodies]
-    anchors = np.array([neutral_pose(a0) for a0 in centre_attitudes])
 
-    def job(body: int, cells: Sequence[tuple[int, int]], start: Pose,
+class _Sweep:
+    """One sweep's cells in table layout, filled phase by phase (module docstring)."""
+
+    def __init__(self, config: KneeConfig, progress: Callable[[int], object] | None) -> None:
+        self.config, self.progress = config, progress
+        flex, var = config.flexion_rad, config.varus_rad
+        nb, nf, nv = len(config.bodies), len(flex), len(var)
+        groups = [tuple(str(m) for m in spec.meshes)
+                  for spec in (config.reference, *config.bodies)]
+        self.scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
+                               tuple(file_sha256(Path(p)) for g in groups for p in g))
+        check_mesh_files(self.scene.paths(), config.units)   # once here; workers load quietly
+        self.f0 = int(np.argmin(np.abs(flex)))
+        self.v0 = int(np.argmin(np.abs(var)))
+        self.poses = np.zeros((nb, nf, nv, 4, 4))
+        self.converged = np.zeros((nb, nf, nv), dtype=bool)
+        self.iterations = np.zeros((nb, nf, nv), dtype=np.int64)
+        self.status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
+        self.backed = np.zeros((nb, nf, nv))
+        self.failures: list[str] = []
+        self.checks = 0
+        self.centre_attitudes = [config.attitude(spec, flex[self.f0], var[self.v0])
+                                 for spec in config.bodies]
+        self.anchors = np.array([neutral_pose(a0) for a0 in self.centre_attitudes])
+        self.varus_free = [abs(b.varus_fraction) < TOL.fraction for b in config.bodies]
+
+    def job(self, body: int, cells: Sequence[tuple[int, int]], start: Pose,
             start_attitude: Floats) -> ChainJob:
+        """The chain of `cells` of `body`, from `start` (settled at `start_attitude`)."""
+        config, flex, var = self.config, self.config.flexion_rad, self.config.varus_rad
         spec = config.bodies[body]
-        return ChainJob(scene, body, tuple(cells),
+        return ChainJob(self.scene, body, tuple(cells),
                         np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
-                        start, start_attitude, anchors[body], centre_attitudes[body])
+                        start, start_attitude, self.anchors[body], self.centre_attitudes[body])
 
-    def collect(futures: Iterable[Future]) -> None:
-        nonlocal checks
+    def collect(self, futures: Iterable[Future[ChainResult]]) -> None:
+        """Put every finished chain's cells in place, as they finish."""
+        flex, var = self.config.flexion_rad, self.config.varus_rad
         for fut in as_completed(list(futures)):
-            res: ChainResult = fut.result()
+            res = fut.result()
             for k, (f, v) in enumerate(res.cells):
-                poses[res.body, f, v] = res.poses[k]
-                converged[res.body, f, v] = res.converged[k]
-                iterations[res.body, f, v] = res.iterations[k]
-                status[res.body, f, v] = res.status[k]
-                backed[res.body, f, v] = res.backed_out_m[k]
-                if not res.converged[k] and len(failures) < 5:
-                    failures.append(f'{config.bodies[res.body].name} flexion '
-                                    f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}:'
-                                    f' {res.reasons[k]}')
-            checks += res.collision_checks
-            if progress:
-                progress(len(res.cells))
+                self.poses[res.body, f, v] = res.poses[k]
+                self.converged[res.body, f, v] = res.converged[k]
+                self.iterations[res.body, f, v] = res.iterations[k]
+                self.status[res.body, f, v] = res.status[k]
+                self.backed[res.body, f, v] = res.backed_out_m[k]
+                if not res.converged[k] and len(self.failures) < 5:
+                    self.failures.append(
+                        f'{self.config.bodies[res.body].name} flexion '
+                        f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}: '
+                        f'{res.reasons[k]}')
+            self.checks += res.collision_checks
+            if self.progress:
+                self.progress(len(res.cells))
 
-    varus_free = [abs(b.varus_fraction) < 1e-12 for b in config.bodies]
-    # 1. centre cells, cold
-    centre_jobs = []
-    for b, spec in enumerate(config.bodies):
-        a0 = config.attitude(spec, flex[f0], var[v0])
-        centre_jobs.append(job(b, [(f0, v0)], cold_start(a0, config.params(spec, flex[f0],
-                                                                           var[v0])), a0))
-    collect([executor.submit(run_chain, j) for j in centre_jobs])
-    for b in range(nb):        # every other cell's envelope: from the centre rest, carried
-        if converged[b, f0, v0]:
-            anchors[b] = poses[b, f0, v0]
-    # 2. spines: varus v0, flexion outward from f0
-    spine_jobs = []
-    for b, spec in enumerate(config.bodies):
-        for side in _outward(nf, f0):
-            if side:
-                spine_jobs.append(job(b, [(f, v0) for f in side], poses[b, f0, v0],
-                                      config.attitude(spec, flex[f0], var[v0])))
-    collect([executor.submit(run_chain, j) for j in spine_jobs])
-    # 3. ribs: every flexion value of a body that feels varus, varus outward from the spine
-    rib_jobs = []
-    for b, spec in enumerate(config.bodies):
-        if varus_free[b]:
-            continue
-        for f in range(nf):
-            for side in _outward(nv, v0):
+    def centre_jobs(self) -> list[ChainJob]:
+        """1. Each body's centre cell, from its cold start."""
+        config, f0, v0 = self.config, self.f0, self.v0
+        jobs = []
+        for b, spec in enumerate(config.bodies):
+            a0 = config.attitude(spec, config.flexion_rad[f0], config.varus_rad[v0])
+            params = config.params(spec, config.flexion_rad[f0], config.varus_rad[v0])
+            jobs.append(self.job(b, [(f0, v0)], cold_start(a0, params), a0))
+        return jobs
+
+    def anchor_at_centres(self) -> None:
+        """Every other cell's envelope is measured from the centre rest, carried."""
+        for b in range(len(self.config.bodies)):
+            if self.converged[b, self.f0, self.v0]:
+                self.anchors[b] = self.poses[b, self.f0, self.v0]
+
+    def spine_jobs(self) -> list[ChainJob]:
+        """2. Spines: varus v0, flexion outward from f0, from the centre rest."""
+        config, f0, v0 = self.config, self.f0, self.v0
+        jobs = []
+        for b, spec in enumerate(config.bodies):
+            for side in _outward(len(config.flexion_rad), f0):
                 if side:
-                    rib_jobs.append(job(b, [(f, v) for v in side], poses[b, f, v0],
-                                        config.attitude(spec, flex[f], var[v0])))
-    collect([executor.submit(run_chain, j) for j in rib_jobs])
-    for b in range(nb):
-        if varus_free[b]:
-            poses[b] = poses[b, :, v0:v0 + 1]
-            converged[b] = converged[b, :, v0:v0 + 1]
-            iterations[b] = iterations[b, :, v0:v0 + 1]
-            status[b] = status[b, :, v0:v0 + 1]
-            backed[b] = backed[b, :, v0:v0 + 1]
-            if progress:           # the copies are cells of the table too
-                progress(nf * (nv - 1))
-    return SweepResult(poses[..., :3, 3].copy(), quat_from_matrix(poses[..., :3, :3]),
-                       converged, iterations, status, checks, time.perf_counter() - started,
-                       scene.mesh_sha256, anchors, (f0, v0), backed, tuple(failures))
+                    jobs.append(self.job(b, [(f, v0) for f in side], self.poses[b, f0, v0],
+                                         config.attitude(spec, config.flexion_rad[f0],
+                                                         config.varus_rad[v0])))
+        return jobs
+
+    def rib_jobs(self) -> list[ChainJob]:
+        """3. Ribs: every flexion value of a body that feels varus, varus outward from the
+        spine cell."""
+        config, v0 = self.config, self.v0
+        jobs = []
+        for b, spec in enumerate(config.bodies):
+            if self.varus_free[b]:
+                continue
+            for f in range(len(config.flexion_rad)):
+                for side in _outward(len(config.varus_rad), v0):
+                    if side:
+                        jobs.append(self.job(b, [(f, v) for v in side], self.poses[b, f, v0],
+                                             config.attitude(spec, config.flexion_rad[f],
+                                                             config.varus_rad[v0])))
+        return jobs
+
+    def copy_across_varus(self) -> None:
+        """A body that ignores varus: its spine, copied to every varus value."""
+        nf, nv, v0 = len(self.config.flexion_rad), len(self.config.varus_rad), self.v0
+        for b in range(len(self.config.bodies)):
+            if self.varus_free[b]:
+                for cells in (self.poses, self.converged, self.iterations, self.status,
+                              self.backed):
+                    cells[b] = cells[b, :, v0:v0 + 1]
+                if self.progress:           # the copies are cells of the table too
+                    self.progress(nf * (nv - 1))
+
+    def result(self, wall_s: float) -> SweepResult:
+        """Everything in table layout."""
+        return SweepResult(self.poses[..., :3, 3].copy(),
+                           quat_from_matrix(self.poses[..., :3, :3]), self.converged,
+                           self.iterations, self.status, self.checks, wall_s,
+                           self.scene.mesh_sha256, self.anchors, (self.f0, self.v0),
+                           self.backed, tuple(self.failures))

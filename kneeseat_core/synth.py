@@ -48,17 +48,16 @@ Dimensions below are millimetres (suffix `_MM`); the meshes are scaled to metres
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 import functools
 import hashlib
-import os
 from pathlib import Path
-import tempfile
 
 import numpy as np
 import trimesh
 
-from .typed import Floats
+from .files import file_sha256, write_bytes
+from .solids import polar_solid, smooth_max, smoothstep, soft_cap, superellipse_scale
+from .typed import Floats, Ints
 
 __all__ = ['DEFAULT_PUSH', 'PATELLA_FLEXION_FRACTION', 'default_knee', 'write_default_knee',
            'stl_bytes', 'NEUTRAL_GAP_MM', 'MEDIAL_CONDYLE_Z_MM', 'LATERAL_CONDYLE_Z_MM']
@@ -131,24 +130,6 @@ _TIBIA_N_ANG, _TIBIA_N_TOP, _TIBIA_N_BOTTOM = 144, 44, 28
 _PATELLA_N_ANG, _PATELLA_N_FRONT, _PATELLA_N_BACK = 128, 24, 40
 
 
-def _smooth_max(parts: list[Floats], k: float = _SMOOTH_MAX_K) -> Floats:
-    """Log-sum-exp maximum of same-shaped arrays (mm): at most ln(n)/k above the max."""
-    stack = np.stack(parts)
-    top = stack.max(axis=0)
-    return top + np.log(np.exp(k * (stack - top)).sum(axis=0)) / k
-
-
-def _soft_cap(value: Floats, cap: Floats | float, k: float = _SMOOTH_MAX_K) -> Floats:
-    """Smooth minimum of `value` and `cap` (mm): -log(exp(-k value) + exp(-k cap)) / k."""
-    return cap - np.logaddexp(0.0, k * (cap - value)) / k
-
-
-def _smoothstep(t: Floats) -> Floats:
-    """C1 step from 0 (t <= 0) to 1 (t >= 1)."""
-    t = np.clip(t, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
-
-
 def _ray_to_circle(phi: Floats, centre: tuple[float, float], radius: float) -> Floats:
     """Distance (mm) from the origin along direction `phi` to a circle enclosing the origin."""
     ux, uy = np.cos(phi), np.sin(phi)
@@ -161,12 +142,6 @@ def _coronal_drop(z: Floats, centre: float, radius: float) -> Floats:
     dz = np.abs(z - centre)
     inside = np.sqrt(np.clip(radius * radius - dz * dz, 0.0, None))
     return np.where(dz < radius, radius - inside, 1e3)
-
-
-def _superellipse_scale(u: Floats, power: float = 4.0) -> Floats:
-    """(1 - |u|^p)^(1/p) for |u| < 1, else 0: flat in the middle, rounded at the ends."""
-    base = np.clip(1.0 - np.abs(u) ** power, 0.0, None)
-    return base ** (1.0 / power)
 
 
 def femur_radius_mm(phi: Floats, z: Floats) -> Floats:
@@ -182,11 +157,11 @@ def femur_radius_mm(phi: Floats, z: Floats) -> Floats:
                - _coronal_drop(z, LATERAL_CONDYLE_Z_MM, _LAT_COR_R_MM))
     core = np.full_like(phi, _CORE_R_MM)
     # Trochlea: anterior only (fades out distally, before the notch), rounded at its ends.
-    anterior = _smoothstep((phi + np.radians(100.0)) / np.radians(25.0))
-    anterior = anterior * (1.0 - _smoothstep((phi - np.radians(110.0)) / np.radians(25.0)))
-    width = _superellipse_scale((z - _TROCH_Z_MM) / _TROCH_HALF_WIDTH_MM, 4.0)
+    anterior = smoothstep((phi + np.radians(100.0)) / np.radians(25.0))
+    anterior = anterior * (1.0 - smoothstep((phi - np.radians(110.0)) / np.radians(25.0)))
+    width = superellipse_scale((z - _TROCH_Z_MM) / _TROCH_HALF_WIDTH_MM, 4.0)
     groove = _GROOVE_DEPTH_MM * np.exp(-((z - _GROOVE_Z_MM) / _GROOVE_WIDTH_MM) ** 2)
-    facet = _LAT_FACET_RISE_MM * _smoothstep((z - _GROOVE_Z_MM) / 20.0)
+    facet = _LAT_FACET_RISE_MM * smoothstep((z - _GROOVE_Z_MM) / 20.0)
     trochlea = (_ray_to_circle(phi, _TROCH_CENTRE_MM, _TROCH_R_MM) + facet - groove)
     trochlea = trochlea * anterior * width
     # Shaft: a box [-a, a] x [0, top] in the slice, scaled down towards its ML ends.
@@ -194,12 +169,12 @@ def femur_radius_mm(phi: Floats, z: Floats) -> Floats:
     with np.errstate(divide='ignore'):
         to_top = np.where(s > 1e-9, _SHAFT_TOP_MM / np.where(s > 1e-9, s, 1.0), 0.0)
         to_side = _SHAFT_HALF_AP_MM / np.maximum(np.abs(c), 1e-9)
-    shaft = np.minimum(to_top, to_side) * _superellipse_scale(
+    shaft = np.minimum(to_top, to_side) * superellipse_scale(
         (z - _SHAFT_Z_MM) / _SHAFT_HALF_ML_MM, 4.0)
-    return _smooth_max([medial, lateral, core, trochlea, shaft])
+    return smooth_max([medial, lateral, core, trochlea, shaft], _SMOOTH_MAX_K)
 
 
-def _femur_mesh_mm() -> tuple[Floats, np.ndarray]:
+def _femur_mesh_mm() -> tuple[Floats, Ints]:
     """Vertices (n, 3) mm and faces (m, 3) of the femur tube with flat end caps."""
     z = np.linspace(*_FEMUR_Z_RANGE_MM, _FEMUR_N_Z)
     phi = np.linspace(-np.pi, np.pi, _FEMUR_N_PHI, endpoint=False)
@@ -221,49 +196,6 @@ def _femur_mesh_mm() -> tuple[Floats, np.ndarray]:
     return vertices, np.concatenate([side, cap0, cap1]).astype(np.int64)
 
 
-HeightField = Callable[[Floats, Floats], Floats]
-
-
-def _polar_solid(top_r: Floats, bottom_r: Floats, n_ang: int, top_h: HeightField,
-                 bottom_h: HeightField) -> tuple[Floats, Floats, np.ndarray]:
-    """A solid between two height fields over the unit disc (polar grid), plus a rim wall.
-
-    Args:
-        top_r: (nt,) ring radii in (0, 1], ascending, last = 1 (rim).
-        bottom_r: (nb,) the same for the bottom surface.
-        n_ang: points per ring.
-        top_h, bottom_h: map (r, angle) arrays to heights; top must exceed bottom.
-    Returns:
-        Unit-disc coordinates (n, 2), heights (n,) and faces (m, 3) of the closed solid.
-    """
-    ang = np.linspace(0.0, 2.0 * np.pi, n_ang, endpoint=False)
-    uv_parts, h_parts, faces, rims = [], [], [], []
-    offset = 0
-    for rings, height, sign in ((top_r, top_h, 1), (bottom_r, bottom_h, -1)):
-        rr, aa = np.meshgrid(rings, ang, indexing='ij')             # (n_rings, n_ang)
-        pole_uv = np.zeros((1, 2))
-        uv = np.vstack([pole_uv, np.stack([rr * np.cos(aa), rr * np.sin(aa)], -1)
-                        .reshape(-1, 2)])
-        h = np.concatenate([height(np.zeros(1), np.zeros(1)), height(rr, aa).reshape(-1)])
-        idx = offset + 1 + np.arange(rr.size).reshape(rr.shape)
-        j = np.arange(n_ang)
-        fan = np.stack([np.full(n_ang, offset), idx[0, j], idx[0, (j + 1) % n_ang]], -1)
-        a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
-        c, d = idx[1:], np.roll(idx[1:], -1, axis=1)
-        quads = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3),
-                                np.stack([a, d, b], -1).reshape(-1, 3)])
-        part = np.concatenate([fan, quads])
-        faces.append(part if sign > 0 else part[:, ::-1])
-        uv_parts.append(uv)
-        h_parts.append(h)
-        offset += len(uv)
-        rims.append(idx[-1])
-    a, b = rims[0], np.roll(rims[0], -1)          # top rim
-    c, d = rims[1], np.roll(rims[1], -1)          # bottom rim, below it
-    faces.append(np.concatenate([np.stack([a, c, d], -1), np.stack([a, d, b], -1)]))
-    return np.vstack(uv_parts), np.concatenate(h_parts), np.concatenate(faces).astype(np.int64)
-
-
 def _circular_rise(u: Floats, radius: float) -> Floats:
     """Rise (mm) of a concave circular profile of `radius` at offset `u` from its bottom.
 
@@ -274,7 +206,8 @@ def _circular_rise(u: Floats, radius: float) -> Floats:
     a = np.minimum(np.abs(u), limit)
     rise = radius - np.sqrt(radius * radius - a * a)
     slope = limit / np.sqrt(radius * radius - limit * limit)
-    return rise + slope * (np.abs(u) - a)
+    out: Floats = rise + slope * (np.abs(u) - a)
+    return out
 
 
 def _dish(x: Floats, z: Floats, centre: tuple[float, float, float],
@@ -284,11 +217,12 @@ def _dish(x: Floats, z: Floats, centre: tuple[float, float, float],
     `_SAG_CAP_MM` and the whole at `_DISH_DEPTH_MM` above its bottom (`_DISH_INNER_DEPTH_MM`
     on the side facing the other dish, which stays clear of the femur's notch)."""
     dx = x - centre[0]
-    sagittal = _soft_cap(shape[0] * (np.sqrt(dx * dx + _SAG_ROUND_MM ** 2) - _SAG_ROUND_MM),
-                         _SAG_CAP_MM)
+    sagittal = soft_cap(shape[0] * (np.sqrt(dx * dx + _SAG_ROUND_MM ** 2) - _SAG_ROUND_MM),
+                        _SAG_CAP_MM, _SMOOTH_MAX_K)
     rise = sagittal + _circular_rise(z - centre[1], shape[1])
     inner = (z - centre[1]) * centre[1] < 0.0        # the side towards the other dish
-    return centre[2] + _soft_cap(rise, np.where(inner, _DISH_INNER_DEPTH_MM, _DISH_DEPTH_MM))
+    return centre[2] + soft_cap(rise, np.where(inner, _DISH_INNER_DEPTH_MM, _DISH_DEPTH_MM),
+                                _SMOOTH_MAX_K)
 
 
 def tibia_top_mm(x: Floats, z: Floats) -> Floats:
@@ -301,16 +235,17 @@ def tibia_top_mm(x: Floats, z: Floats) -> Floats:
     base = _MED_DISH_MM[2] + _EMINENCE_HEIGHT_MM
     eminence = base - (base - plateau) * (1.0 - np.minimum(
         spines * np.exp(-x * x / (2 * sx * sx)), 1.0))
-    return np.maximum(plateau, eminence)
+    out: Floats = np.maximum(plateau, eminence)
+    return out
 
 
-def _tibia_mesh_mm() -> tuple[Floats, np.ndarray]:
+def _tibia_mesh_mm() -> tuple[Floats, Ints]:
     cx, cz = _TIBIA_CENTRE_MM
     ax, az = _TIBIA_SEMI_MM
 
     def top(r: Floats, ang: Floats) -> Floats:
         x, z = cx + ax * r * np.cos(ang), cz + az * r * np.sin(ang)
-        return tibia_top_mm(x, z) - _TIBIA_RIM_DROP_MM * _smoothstep((r - 0.8) / 0.2) ** 2
+        return tibia_top_mm(x, z) - _TIBIA_RIM_DROP_MM * smoothstep((r - 0.8) / 0.2) ** 2
 
     def bottom(r: Floats, ang: Floats) -> Floats:
         x, z = cx + ax * np.cos(ang), cz + az * np.sin(ang)
@@ -325,7 +260,7 @@ def _tibia_mesh_mm() -> tuple[Floats, np.ndarray]:
     flare_r = _TIBIA_SHAFT_FRACTION + (1.0 - _TIBIA_SHAFT_FRACTION) * t ** 2.0
     bottom_r = np.concatenate([np.linspace(0.0, _TIBIA_SHAFT_FRACTION, 5)[1:-1],
                                [_TIBIA_SHAFT_FRACTION * 0.999], flare_r[1:]])
-    uv, h, faces = _polar_solid(top_r, bottom_r, _TIBIA_N_ANG, top, bottom)
+    uv, h, faces = polar_solid(top_r, bottom_r, _TIBIA_N_ANG, top, bottom)
     vertices = np.stack([cx + ax * uv[:, 0], h, cz + az * uv[:, 1]], axis=-1)
     return vertices, faces
 
@@ -372,10 +307,11 @@ def patella_back_mm(y: Floats, z: Floats) -> Floats:
              + tz * ((1 - ty) * x_s[iz + 1, iy] + ty * x_s[iz + 1, iy + 1]))
     relief = _PATELLA_RIDGE_RELIEF_MM * np.exp(
         -((z - _GROOVE_Z_MM) / (0.8 * _GROOVE_WIDTH_MM)) ** 2)
-    return front + _PATELLA_GAP_MM + relief
+    out: Floats = front + _PATELLA_GAP_MM + relief
+    return out
 
 
-def _patella_mesh_mm() -> tuple[Floats, np.ndarray]:
+def _patella_mesh_mm() -> tuple[Floats, Ints]:
     cy, cz = _PATELLA_CENTRE_MM
     ay, az = _PATELLA_SEMI_MM
 
@@ -387,17 +323,17 @@ def _patella_mesh_mm() -> tuple[Floats, np.ndarray]:
 
     def back(r: Floats, ang: Floats) -> Floats:
         y, z = cy + ay * r * np.cos(ang), cz + az * r * np.sin(ang)
-        return patella_back_mm(y, z) + 1.5 * _smoothstep((r - 0.75) / 0.25) ** 2
+        return patella_back_mm(y, z) + 1.5 * smoothstep((r - 0.75) / 0.25) ** 2
 
     front_r = np.linspace(0.0, 1.0, _PATELLA_N_FRONT + 1)[1:]
     back_r = np.linspace(0.0, 1.0, _PATELLA_N_BACK + 1)[1:]
     # The "top" height field is the anterior face (+x): the solid lies between the two.
-    uv, h, faces = _polar_solid(front_r, back_r, _PATELLA_N_ANG, front, back)
+    uv, h, faces = polar_solid(front_r, back_r, _PATELLA_N_ANG, front, back)
     vertices = np.stack([h, cy + ay * uv[:, 0], cz + az * uv[:, 1]], axis=-1)
     return vertices, faces
 
 
-def _finish(vertices_mm: Floats, faces: np.ndarray) -> trimesh.Trimesh:
+def _finish(vertices_mm: Floats, faces: Ints) -> trimesh.Trimesh:
     """Scale to metres and orient the faces outward (positive signed volume)."""
     mesh = trimesh.Trimesh(vertices_mm * _M_PER_MM, faces, process=False, validate=False)
     if mesh.volume < 0.0:
@@ -428,14 +364,15 @@ def stl_bytes(mesh: trimesh.Trimesh) -> bytes:
     data['normal'] = normals
     data['vertices'] = triangles
     header = b'kneeseat default knee (procedural), metres'.ljust(80, b' ')
-    return header + np.uint32(len(triangles)).astype('<u4').tobytes() + data.tobytes()
+    count: bytes = np.uint32(len(triangles)).astype('<u4').tobytes()
+    return header + count + data.tobytes()
 
 
 def write_default_knee(out_dir: Path) -> dict[str, Path]:
     """Write femur.stl, tibia.stl, patella.stl (binary STL, metres) into `out_dir`.
 
-    Each file is written atomically (temporary file in `out_dir`, then rename), so a crash
-    never leaves a half mesh; `out_dir` is created if missing. Idempotent: the same bytes
+    Each file is written atomically (`kneeseat_core.files.atomic_write`), so a crash never
+    leaves a half mesh; `out_dir` is created if missing. Idempotent: the same bytes
     every time (a file that already holds them is left untouched).
 
     Returns:
@@ -448,16 +385,7 @@ def write_default_knee(out_dir: Path) -> dict[str, Path]:
         path = out_dir / f'{name}.stl'
         data = stl_bytes(mesh)
         if not (path.is_file() and _same_file(path, data)):
-            fd, tmp = tempfile.mkstemp(prefix=f'.{name}.', suffix='.stl.tmp', dir=out_dir)
-            try:
-                with os.fdopen(fd, 'wb') as handle:
-                    handle.write(data)
-                    handle.flush()
-                    os.fsync(handle.fileno())
-                os.replace(tmp, path)
-            except BaseException:
-                Path(tmp).unlink(missing_ok=True)
-                raise
+            write_bytes(path, data)
         paths[name] = path
     return paths
 
@@ -466,4 +394,4 @@ def _same_file(path: Path, data: bytes) -> bool:
     """Whether `path` already holds exactly `data` (compared by size, then SHA-256)."""
     if path.stat().st_size != len(data):
         return False
-    return hashlib.sha256(path.read_bytes()).digest() == hashlib.sha256(data).digest()
+    return file_sha256(path) == hashlib.sha256(data).hexdigest()

@@ -16,21 +16,27 @@ import json
 import math
 from pathlib import Path
 import sys
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, Sequence, TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
+import trimesh
 
+from .args import vector3
 from .errors import MeshError, TableError
-from .geometry import matrix_from_quat, pose_from
+from .geometry import matrix_from_quat, pose_from, TOL
 from .knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
-from .meshes import check_mesh_files, load_mesh
+from .meshes import check_mesh_files, load_mesh, Units
 from .referee import Envelope, Referee, Verdict
 from .search import SettleParams
 from .status import AT_REST, STATUS_NAMES
 from .sweep import carried
-from .table import PoseTable, read_table
+from .table import PoseTable
+from .table_io import read_table
 from .typed import Pose
+
+if TYPE_CHECKING:
+    from .args import Subcommands
 
 __all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'register_command']
 
@@ -80,7 +86,8 @@ class CellVerdict:
 # ---- a table's cells ------------------------------------------------------------------
 def _varus_free(meta: dict[str, Any], body: int) -> bool:
     specs = meta.get('config', {}).get('resolved', {}).get('bodies', [])
-    return body < len(specs) and abs(float(specs[body].get('varus_fraction', 1.0))) < 1e-12
+    return (body < len(specs)
+            and abs(float(specs[body].get('varus_fraction', 1.0))) < TOL.fraction)
 
 
 def sample_cells(table: PoseTable, count: int | None, seed: int = 20261201
@@ -134,7 +141,7 @@ def _mesh_file(path: Path, mesh_dir: str | None) -> str:
     return str(Path(mesh_dir) / path.name) if mesh_dir else str(path)
 
 
-def _meshes(spec: BodySpec, units: Any, mesh_dir: str | None) -> list[Any]:
+def _meshes(spec: BodySpec, units: Units, mesh_dir: str | None) -> list[trimesh.Trimesh]:
     """A body's collision meshes, loaded quietly (the parent validated them once)."""
     return [load_mesh(_mesh_file(p, mesh_dir), units, quiet=True) for p in spec.meshes]
 
@@ -158,13 +165,13 @@ def _judge_cells(job: _CellJob) -> list[CellVerdict]:
     """Judge the cells of `job` (runs in a worker; tables and meshes cached per process)."""
     key = f'{job.table}|{job.mesh_dir}'
     if _WORKER_STATE.get('key') != key:
-        table = read_table(Path(job.table))
-        config = config_from_metadata(table.metadata)
+        loaded = read_table(Path(job.table))
+        built = config_from_metadata(loaded.metadata)
         _WORKER_STATE.clear()
         _WORKER_STATE.update(
-            key=key, table=table, config=config,
-            fixed=_meshes(config.reference, config.units, job.mesh_dir),
-            moving=[_meshes(b, config.units, job.mesh_dir) for b in config.bodies])
+            key=key, table=loaded, config=built,
+            fixed=_meshes(built.reference, built.units, job.mesh_dir),
+            moving=[_meshes(b, built.units, job.mesh_dir) for b in built.bodies])
     table: PoseTable = _WORKER_STATE['table']
     config: KneeConfig = _WORKER_STATE['config']
     meta, codes = table.metadata, table.status
@@ -296,7 +303,7 @@ def _verify_one_cmd(args: argparse.Namespace) -> int:
     return EXIT_AT_REST if at_rest else EXIT_NOT_AT_REST
 
 
-def register_command(sub: Any, vector3: Any) -> None:
+def register_command(sub: Subcommands) -> None:
     """Add `verify` to the `kneeseat` subcommand parser."""
     from .sweep import default_workers
     p = sub.add_parser('verify', help='check settled poses with the independent referee')

@@ -5,8 +5,8 @@ Inputs are validated here so that the node's callbacks stay glue: every rejectio
 (one tracker message -> one pose per body) avoids numpy where plain floats are faster.
 
 Quaternion tolerance: trackers send float32-ish data (about 7 significant digits) and
-often renormalise after filtering, so `|1 - |q||` up to `QUAT_NORM_TOL` (1e-3, i.e.
-`TOL.unit_norm` scaled by 1e3) is accepted and the quaternion is normalised; anything
+often renormalise after filtering, so `|1 - |q||` up to `QUAT_NORM_TOL`
+(`TOL.input_unit_norm`, 1e-3) is accepted and the quaternion is normalised; anything
 further from unit length is corrupt data and rejected. A zero quaternion is rejected as
 well (it has no rotation), which also covers an uninitialised `Pose` message.
 
@@ -23,44 +23,34 @@ from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from geometry_msgs.msg import Pose, PoseStamped
 import numpy as np
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
 
-from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, TOL
 from kneeseat_core.typed import Floats, Pose as PoseArray
+from .errors import BadInputError
 
-__all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'BadInputError', 'AttitudeDecoder',
-           'stamp_ns', 'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped',
-           'angles_from_joint_state', 'pose_stamped', 'pose_stamped_for_attitude',
-           'joint_state', 'pose_from_msg', 'mesh_marker', 'MARKER_ID_STRIDE',
-           'display_mesh_paths', 'body_markers', 'diagnostic_status',
-           'rigid_from_pose_stamped', 'transform_stamped', 'UNSTAMPED',
-           'angles_from_orientation', 'angles_from_joints', 'rigid_from_fields']
+__all__ = ['QUAT_NORM_TOL', 'JOINT_NAMES', 'DROP_REASONS', 'AttitudeDecoder', 'stamp_ns',
+           'stamp_from_ns', 'quat_xyzw', 'angles_from_pose_stamped', 'angles_from_joint_state',
+           'pose_stamped', 'pose_stamped_for_attitude', 'joint_state', 'pose_from_msg',
+           'mesh_marker', 'MARKER_ID_STRIDE', 'display_mesh_paths', 'body_markers',
+           'diagnostic_status', 'angles_from_orientation', 'angles_from_joints',
+           'rigid_from_fields']
 
-QUAT_NORM_TOL = 1e3 * TOL.unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
+QUAT_NORM_TOL = TOL.input_unit_norm     # |1 - |q|| accepted from a tracker (float32 data)
 JOINT_NAMES = ('knee_flexion', 'knee_varus')
 
 # Diagnostics counter names (keys `dropped_<reason>`), in display order.
 DROP_REASONS = ('nonfinite', 'quaternion', 'frame_id', 'joint_names', 'lengths',
                 'out_of_range', 'unpaired', 'stale', 'malformed')
-UNSTAMPED = 0   # header.stamp of a message nobody stamped (e.g. `ros2 topic pub`'s default)
-
-
-class BadInputError(KneeseatError):
-    """An input message cannot be turned into an attitude; `reason` is in DROP_REASONS."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
 
 
 def stamp_ns(stamp: Time) -> int:
     """Nanoseconds since the epoch of a builtin_interfaces/Time."""
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def stamp_from_ns(ns: int) -> Time:
@@ -78,9 +68,10 @@ def quat_xyzw(msg: Pose) -> tuple[float, float, float, float]:
 class AttitudeDecoder:
     """(flexion, varus) of a unit quaternion with a table's axes, in plain Python floats.
 
-    Same result as `KneeAxes.decompose(matrix_from_quat(q))[:2]` (to rounding), about ten
-    times faster for one message: only the third column of `B.T @ R @ B` is needed, where B
-    is the right-handed basis [flexion, varus, +-long] of `KneeAxes`.
+    Same result as `KneeAxes.decompose(matrix_from_quat(q))[:2]` (to rounding), written out
+    for one message: only the third column of `B.T @ R @ B` is needed, where B is the
+    right-handed basis [flexion, varus, +-long] of `KneeAxes`. Measured: 1.3 us, against
+    55 us through `decompose(matrix_from_quat(q))` and 42 us through scipy's `Rotation`.
     """
 
     __slots__ = ('_b0', '_b1', '_b2')
@@ -147,24 +138,16 @@ def angles_from_orientation(got_frame: str, quat: Sequence[float],
     return decoder.angles(x / norm, y / norm, z / norm, w / norm)
 
 
-def rigid_from_pose_stamped(msg: PoseStamped, frame_id: str,
-                            what: str) -> tuple[float, float, float, float, float, float, float]:
-    """(px, py, pz, qx, qy, qz, qw) of a tracked rigid body's pose in `frame_id`.
-
-    The quaternion is normalised (within `QUAT_NORM_TOL` of unit length).
+def rigid_from_fields(got_frame: str, pose: Sequence[float], frame_id: str,
+                      what: str) -> tuple[float, float, float, float, float, float, float]:
+    """(px, py, pz, qx, qy, qz, qw) of a tracked rigid body's pose in `frame_id`, from a
+    PoseStamped's frame_id and pose fields; the quaternion is normalised (within
+    `QUAT_NORM_TOL` of unit length).
 
     Raises:
         BadInputError: wrong or empty frame_id ('frame_id'), NaN/inf ('nonfinite'), a zero
             or non-unit quaternion ('quaternion'). The message names `what`.
     """
-    p = msg.pose.position
-    return rigid_from_fields(msg.header.frame_id, (p.x, p.y, p.z, *quat_xyzw(msg.pose)),
-                             frame_id, what)
-
-
-def rigid_from_fields(got_frame: str, pose: Sequence[float], frame_id: str,
-                      what: str) -> tuple[float, float, float, float, float, float, float]:
-    """`rigid_from_pose_stamped` on the fields: frame_id and (px, py, pz, qx, qy, qz, qw)."""
     if got_frame != frame_id:
         raise BadInputError('frame_id', f'{what} frame_id {got_frame!r} is not the world frame '
                             f'{frame_id!r}; set tracker.world_frame or fix the tracker')
@@ -177,19 +160,6 @@ def rigid_from_fields(got_frame: str, pose: Sequence[float], frame_id: str,
                             f'quaternion (tolerance {QUAT_NORM_TOL:g}); send normalised '
                             '(x, y, z, w)')
     return (px, py, pz, x / norm, y / norm, z / norm, w / norm)
-
-
-def transform_stamped(pose: Sequence[float], stamp: Time, parent: str,
-                      child: str) -> TransformStamped:
-    """TransformStamped parent -> child from (px, py, pz, qx, qy, qz, qw)."""
-    msg = TransformStamped()
-    msg.header.stamp = stamp
-    msg.header.frame_id = parent
-    msg.child_frame_id = child
-    t, r = msg.transform.translation, msg.transform.rotation
-    t.x, t.y, t.z = float(pose[0]), float(pose[1]), float(pose[2])
-    r.x, r.y, r.z, r.w = float(pose[3]), float(pose[4]), float(pose[5]), float(pose[6])
-    return msg
 
 
 def angles_from_joint_state(msg: JointState,
@@ -226,7 +196,7 @@ def angles_from_joints(joint_names: Sequence[str], position: Sequence[float],
     return flexion, varus
 
 
-def pose_stamped(position_m: Sequence[float], orientation_xyzw: Sequence[float],
+def pose_stamped(position_m: Sequence[float] | Floats, orientation_xyzw: Sequence[float] | Floats,
                  stamp: Time, frame_id: str) -> PoseStamped:
     """PoseStamped from a (3,) position in m and a (4,) quaternion (x, y, z, w)."""
     msg = PoseStamped()
@@ -306,8 +276,8 @@ def display_mesh_paths(entry: Mapping[str, Any], table_dir: Path) -> tuple[str, 
     Relative paths are taken from `table_dir`.
     """
     def paths(key_list: str, key_one: str) -> list[str]:
-        listed = [m.get('path') for m in entry.get(key_list) or [] if isinstance(m, Mapping)]
-        listed = [p for p in listed if p]
+        listed = [str(m['path']) for m in entry.get(key_list) or []
+                  if isinstance(m, Mapping) and m.get('path')]
         return listed or ([str(entry[key_one])] if entry.get(key_one) else [])
 
     names = paths('display_meshes', 'display_mesh') or paths('meshes', 'mesh')

@@ -21,11 +21,14 @@ import sys
 
 import numpy as np
 
+from kneeseat_core.args import join_negative_values
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.typed import Floats
+from . import topics
 from .conversions import joint_state, pose_stamped, stamp_from_ns
-from .recorder import BagRecorder, RecorderError
+from .errors import RecorderError, TrajectoryError
+from .recorder import BagRecorder
 from .replay import PUBLISHER_QOS
 
 __all__ = ['TrajectoryError', 'AngleTrack', 'sweep', 'gait', 'read_csv', 'parse_axes',
@@ -34,11 +37,9 @@ __all__ = ['TrajectoryError', 'AngleTrack', 'sweep', 'gait', 'read_csv', 'parse_
 DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000   # fixed epoch: 2023-11-14T22:13:20Z
 DEFAULT_AXES = '0,0,1/1,0,0/0,1,0'                  # flexion / varus / long (TKA frame)
 CSV_COLUMNS = ('time_s', 'flexion_deg', 'varus_deg')
-_VECTOR_OPTIONS = ('--axes',)
-
-
-class TrajectoryError(KneeseatError):
-    """An angle CSV or a trajectory request is invalid; the message names the line/option."""
+POSE_TOPIC = topics.at_root(topics.POSE)
+JOINT_STATES_TOPIC = topics.at_root(topics.JOINT_STATES)
+_VECTOR_OPTIONS = ('--axes',)     # values may start with a minus: -1,0,0/...
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -155,7 +156,7 @@ def parse_axes(text: str) -> KneeAxes:
 
 def write_angle_bag(directory: Path, track: AngleTrack, axes: KneeAxes, *,
                     frame_id: str = 'femur', start_ns: int = DEFAULT_START_NS,
-                    topic: str = '/knee/pose', joint_states: bool = False,
+                    topic: str = POSE_TOPIC, joint_states: bool = False,
                     table_sha256: str = '', table_path: str = '') -> int:
     """Write `track` as PoseStamped messages (and optionally JointState) into a new bag.
 
@@ -175,14 +176,14 @@ def write_angle_bag(directory: Path, track: AngleTrack, axes: KneeAxes, *,
                      table_path=table_path) as recorder:
         recorder.add_topic(topic, 'geometry_msgs/msg/PoseStamped', PUBLISHER_QOS)
         if joint_states:
-            recorder.add_topic('/knee/joint_states', 'sensor_msgs/msg/JointState',
+            recorder.add_topic(JOINT_STATES_TOPIC, 'sensor_msgs/msg/JointState',
                                PUBLISHER_QOS)
         for i, ns in enumerate(int(s) for s in stamps):
             stamp = stamp_from_ns(ns)
             recorder.write(topic, pose_stamped((0.0, 0.0, 0.0), quats[i], stamp, frame_id),
                            ns, ns)
             if joint_states:
-                recorder.write('/knee/joint_states',
+                recorder.write(JOINT_STATES_TOPIC,
                                joint_state(track.flexion_rad[i], track.varus_rad[i], stamp),
                                ns, ns)
     if recorder.error is not None:
@@ -213,31 +214,16 @@ def build_parser() -> argparse.ArgumentParser:
                    "table's reference frame)")
     p.add_argument('--start-ns', type=int, default=DEFAULT_START_NS,
                    help=f'stamp of t = 0 in ns since the epoch (default {DEFAULT_START_NS})')
-    p.add_argument('--topic', default='/knee/pose', help='pose topic (default /knee/pose)')
+    p.add_argument('--topic', default=POSE_TOPIC, help=f'pose topic (default {POSE_TOPIC})')
     p.add_argument('--joint-states', action='store_true',
                    help='also write sensor_msgs/JointState on /knee/joint_states')
     return p
 
 
-def _join_vector_options(argv: Sequence[str]) -> list[str]:
-    """Let `--axes -1,0,0/...` (a value starting with '-') through argparse."""
-    out: list[str] = []
-    args = list(argv)
-    i = 0
-    while i < len(args):
-        if args[i] in _VECTOR_OPTIONS and i + 1 < len(args):
-            out.append(f'{args[i]}={args[i + 1]}')
-            i += 2
-        else:
-            out.append(args[i])
-            i += 1
-    return out
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `make_bag` console script; returns the exit code."""
     args = build_parser().parse_args(
-        _join_vector_options(sys.argv[1:] if argv is None else argv))
+        join_negative_values(sys.argv[1:] if argv is None else argv, _VECTOR_OPTIONS))
     try:
         if args.start_ns < 0:
             raise TrajectoryError(f'--start-ns {args.start_ns} is negative; give ns since the '
@@ -245,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         table_sha256 = table_path = ''
         frame = 'femur'
         if args.table is not None:
-            from kneeseat_core.table import read_table
+            from kneeseat_core.table_io import read_table
             table = read_table(args.table)
             axes, frame = table.axes, table.reference_frame
             table_sha256, table_path = table.sha256, str(args.table)

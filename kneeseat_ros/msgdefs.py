@@ -10,32 +10,28 @@ Schema text (rosbag2 Jazzy, `ros2msg` encoding): the root type's `.msg` text, th
 each dependency, depth-first, sorted by name within one definition, each type once:
 ``'\\n' + '=' * 80 + '\\nMSG: pkg/Type\\n' + text``.
 
-`serialize` writes a message as CDR (little endian, the encapsulation ROS 2 uses) with
-zeroed alignment padding. rclpy's `serialize_message` (rmw_fastrtps, Jazzy) leaves the
-padding bytes uninitialised and appends junk after messages with sequences (it reports the
-estimated, not the written, length): rosbags rejects those bytes ("CDR message size
-mismatch") and they differ from run to run. The bytes here are the same as rclpy's apart
-from that, and `rclpy.serialization.deserialize_message` reads them back.
+A `TopicSpec` is everything a bag stores about one topic: its type, that schema text, the
+type hash and the offered QoS as rosbag2 Jazzy (metadata v9) writes it (`qos_to_dicts`).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import functools
 import importlib
 import importlib.util
 import json
 from pathlib import Path
 import re
-import struct
 import sys
 from typing import Any
 
 from ament_index_python.packages import get_package_share_directory, PackageNotFoundError
-from rosidl_parser import definition as idl
+from rclpy.qos import QoSProfile
 
-from kneeseat_core.errors import KneeseatError
+from .errors import MessageTypeError, RecorderError
 
-__all__ = ['MessageTypeError', 'split_type', 'message_class', 'message_definition',
-           'type_hash', 'serialize']
+__all__ = ['split_type', 'message_class', 'message_definition', 'type_hash', 'TopicSpec',
+           'topic_spec', 'qos_to_dicts', 'DEFAULT_QOS']
 
 # Field types that are not messages (rosidl primitive types and their ROS 1 aliases).
 PRIMITIVES = frozenset({
@@ -44,10 +40,6 @@ PRIMITIVES = frozenset({
 })
 SEPARATOR = '=' * 80
 _TYPE_RE = re.compile(r'^([A-Za-z][A-Za-z0-9_]*)/(msg)/([A-Za-z][A-Za-z0-9_]*)$')
-
-
-class MessageTypeError(KneeseatError):
-    """A message type name is malformed or its interface package is not installed."""
 
 
 def split_type(msg_type: str) -> tuple[str, str]:
@@ -185,87 +177,58 @@ def type_hash(msg_type: str) -> str:
                                f'reinstall the {package} wheel') from None
 
 
-# -- CDR ---------------------------------------------------------------------------------
-CDR_HEADER = b'\x00\x01\x00\x00'      # CDR, little endian, no options
-_BASIC = {                              # IDL basic type -> struct format (size = alignment)
-    'boolean': '?', 'octet': 'B', 'char': 'B', 'uint8': 'B', 'int8': 'b',
-    'int16': 'h', 'uint16': 'H', 'int32': 'i', 'uint32': 'I', 'int64': 'q', 'uint64': 'Q',
-    'float': 'f', 'double': 'd',
-}
+# -- what a bag stores about a topic ------------------------------------------------------
+DEFAULT_QOS = QoSProfile(depth=10)  # rclpy's default publisher QoS
 
 
-class _CdrWriter:
-    def __init__(self) -> None:
-        self.buf = bytearray()
-
-    def align(self, size: int) -> None:
-        self.buf.extend(b'\x00' * (-len(self.buf) % size))
-
-    def basic(self, fmt: str, value: Any) -> None:
-        if isinstance(value, (bytes, bytearray)):
-            value = value[0]
-        elif fmt == 'B' and isinstance(value, str):
-            value = ord(value)
-        size = struct.calcsize(fmt)
-        self.align(size)
-        self.buf.extend(struct.pack('<' + fmt, value))
-
-    def basics(self, fmt: str, values: Any) -> None:
-        values = list(values)
-        if not values:
-            return
-        if isinstance(values[0], (bytes, bytearray)):
-            values = [v[0] for v in values]
-        self.align(struct.calcsize(fmt))
-        self.buf.extend(struct.pack(f'<{len(values)}{fmt}', *values))
-
-    def string(self, value: str) -> None:
-        data = value.encode('utf-8') + b'\x00'
-        self.basic('I', len(data))
-        self.buf.extend(data)
+def _duration_dict(ns: int) -> dict[str, int]:
+    return {'sec': ns // 1_000_000_000, 'nsec': ns % 1_000_000_000}
 
 
-def _write_value(out: _CdrWriter, slot: Any, value: Any) -> None:
-    if isinstance(slot, idl.BasicType):
-        out.basic(_basic_format(slot), value)
-    elif isinstance(slot, idl.AbstractString):
-        out.string(value)
-    elif isinstance(slot, idl.NamespacedType):
-        _write_struct(out, value)
-    elif isinstance(slot, (idl.Array, idl.AbstractSequence)):
-        items = value
-        if isinstance(slot, idl.AbstractSequence):
-            out.basic('I', len(items))
-        inner = slot.value_type
-        if isinstance(inner, idl.BasicType):
-            out.basics(_basic_format(inner), items)
-        else:
-            for item in items:
-                _write_value(out, inner, item)
-    else:
-        raise MessageTypeError(f'cannot serialise field type {slot!r}; wide strings and long '
-                               'double are not supported by the kneeseat recorder')
+def qos_to_dicts(qos: QoSProfile) -> list[dict[str, Any]]:
+    """The offered QoS of one publisher as rosbag2 Jazzy (metadata v9) writes it.
 
-
-def _basic_format(slot: Any) -> str:
-    try:
-        return _BASIC[slot.typename]
-    except KeyError:
-        raise MessageTypeError(f'cannot serialise basic type {slot.typename!r}; it is not '
-                               'used by the kneeseat topics') from None
-
-
-def _write_struct(out: _CdrWriter, msg: Any) -> None:
-    for name, slot in zip(msg.get_fields_and_field_types(), type(msg).SLOT_TYPES):
-        _write_value(out, slot, getattr(msg, name))
-
-
-def serialize(msg: Any) -> bytes:
-    """CDR bytes (little endian, 4-byte encapsulation header) of an rclpy message.
-
-    Raises:
-        MessageTypeError: the message uses a field type the writer does not support.
+    Returns:
+        A one-element list (rosbag2 stores one entry per publisher) of a dict with string
+        policy names (`keep_last`, `reliable`, `volatile`, `automatic`, ...) and durations
+        as `{sec, nsec}`.
     """
-    out = _CdrWriter()
-    _write_struct(out, msg)
-    return CDR_HEADER + bytes(out.buf)
+    return [{
+        'history': qos.history.name.lower(),
+        'depth': int(qos.depth),
+        'reliability': qos.reliability.name.lower(),
+        'durability': qos.durability.name.lower(),
+        'deadline': _duration_dict(qos.deadline.nanoseconds),
+        'lifespan': _duration_dict(qos.lifespan.nanoseconds),
+        'liveliness': qos.liveliness.name.lower(),
+        'liveliness_lease_duration': _duration_dict(qos.liveliness_lease_duration.nanoseconds),
+        'avoid_ros_namespace_conventions': bool(qos.avoid_ros_namespace_conventions),
+    }]
+
+
+@dataclass(frozen=True, slots=True)
+class TopicSpec:
+    """Everything a bag stores about one topic."""
+
+    topic: str
+    msg_type: str                   # 'pkg/msg/Type'
+    definition: str                 # ros2msg schema text, dependencies included
+    type_hash: str                  # 'RIHS01_...', '' if unknown
+    qos: tuple[dict[str, Any], ...]  # offered QoS profiles (v9 dicts)
+
+
+def topic_spec(topic: str, msg_type: str, qos: QoSProfile | None = None) -> TopicSpec:
+    """Everything a bag stores about one topic, from the installed message package.
+
+    Args:
+        topic: the topic name, e.g. '/knee/pose'.
+        msg_type: like 'geometry_msgs/msg/PoseStamped'.
+        qos: the QoS offered by its publisher (rclpy's default profile if None).
+    Raises:
+        RecorderError: the type's definition or hash cannot be found.
+    """
+    try:
+        return TopicSpec(topic, msg_type, message_definition(msg_type), type_hash(msg_type),
+                         tuple(qos_to_dicts(qos if qos is not None else DEFAULT_QOS)))
+    except MessageTypeError as err:
+        raise RecorderError(f'cannot record {topic}: {err}') from None

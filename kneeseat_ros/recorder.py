@@ -1,4 +1,4 @@
-"""Session logs: rosbag2-style bag directories of MCAP files, and their recovery.
+"""Session logs: rosbag2-style bag directories of MCAP files (recovery: `recovery`).
 
 A bag is a directory `<name>/` holding `<name>_0.mcap`, `<name>_1.mcap`, ... and a
 `metadata.yaml` (rosbag2 version 9), so `ros2 bag`, rosbags, Foxglove and the `mcap` CLI
@@ -13,88 +13,50 @@ gives the same bytes (the shipped demo bag relies on it).
 Failure policy: a directory that cannot be created or written raises `RecorderError` at
 construction. After that `write` never raises on an I/O error: it records the error in
 `BagRecorder.error`, stops writing and returns, so a node keeps serving. A process killed
-mid-write leaves a file without its summary; `recover` rewrites every readable message
-into a new, complete bag.
+mid-write leaves a file without its summary; `kneeseat_ros.recovery.recover` rewrites every
+readable message into a new, complete bag (`python -m kneeseat_ros.recorder recover BAG`).
+
+The well-known MCAP names (profile, encodings) come from `mcap.well_known`. Messages are
+CDR bytes: the node's own, or `cdr.serialize` for message objects (why not rclpy's or
+mcap-ros2-support's serialiser: `kneeseat_ros.cdr`). What a bag stores about a topic
+(definition, type hash, offered QoS) is `msgdefs.TopicSpec`.
 """
 from __future__ import annotations
 
-import argparse
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
-import re
 import sys
 import threading
 from typing import Any, BinaryIO
 
 from mcap.exceptions import McapError
-from mcap.records import Channel, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import __version__ as MCAP_VERSION, CompressionType, IndexType, Writer
 from rclpy.qos import QoSProfile
 import yaml
 
-from kneeseat_core.errors import KneeseatError
-from .msgdefs import message_definition, MessageTypeError, serialize, type_hash
+from kneeseat_core.errors import ConfigError
+from kneeseat_core.files import write_bytes
+from .cdr import serialize
+from .errors import RecorderError
+from .msgdefs import topic_spec, TopicSpec
 
-__all__ = ['RecorderError', 'BagRecorder', 'TopicSpec', 'RecoveryReport', 'qos_to_dicts',
-           'topic_spec',
-           'read_readable', 'recover', 'DEFAULT_QOS', 'METADATA_NAME']
+__all__ = ['BagRecorder', 'session_directory', 'open_session', 'METADATA_NAME']
 
-PROFILE = 'ros2'
-SCHEMA_ENCODING = 'ros2msg'
-MESSAGE_ENCODING = 'cdr'
+PROFILE = Profile.ROS2                      # 'ros2'
+SCHEMA_ENCODING = SchemaEncoding.ROS2       # 'ros2msg'
+MESSAGE_ENCODING = MessageEncoding.CDR      # 'cdr'
 METADATA_NAME = 'kneeseat'
 LIBRARY = f'kneeseat_ros.recorder; mcap-python/{MCAP_VERSION}'
 BAG_VERSION = 9
 CHUNK_SIZE_BYTES = 768 * 1024      # rosbag2's default MCAP chunk size
 MESSAGE_RECORD_OVERHEAD = 31       # opcode, length, channel, sequence, two stamps (bytes)
-DEFAULT_QOS = QoSProfile(depth=10)  # rclpy's default publisher QoS
-_SPLIT_RE = re.compile(r'_(\d+)\.mcap$')
-
-
-class RecorderError(KneeseatError):
-    """A bag directory cannot be created or written, or a topic cannot be recorded."""
-
-
-def _duration_dict(ns: int) -> dict[str, int]:
-    return {'sec': ns // 1_000_000_000, 'nsec': ns % 1_000_000_000}
-
-
-def qos_to_dicts(qos: QoSProfile) -> list[dict[str, Any]]:
-    """The offered QoS of one publisher as rosbag2 Jazzy (metadata v9) writes it.
-
-    Returns:
-        A one-element list (rosbag2 stores one entry per publisher) of a dict with string
-        policy names (`keep_last`, `reliable`, `volatile`, `automatic`, ...) and durations
-        as `{sec, nsec}`.
-    """
-    return [{
-        'history': qos.history.name.lower(),
-        'depth': int(qos.depth),
-        'reliability': qos.reliability.name.lower(),
-        'durability': qos.durability.name.lower(),
-        'deadline': _duration_dict(qos.deadline.nanoseconds),
-        'lifespan': _duration_dict(qos.lifespan.nanoseconds),
-        'liveliness': qos.liveliness.name.lower(),
-        'liveliness_lease_duration': _duration_dict(qos.liveliness_lease_duration.nanoseconds),
-        'avoid_ros_namespace_conventions': bool(qos.avoid_ros_namespace_conventions),
-    }]
 
 
 def _yaml(data: Any) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
-
-
-@dataclass(frozen=True, slots=True)
-class TopicSpec:
-    """Everything a bag stores about one topic."""
-
-    topic: str
-    msg_type: str                   # 'pkg/msg/Type'
-    definition: str                 # ros2msg schema text, dependencies included
-    type_hash: str                  # 'RIHS01_...', '' if unknown
-    qos: tuple[dict[str, Any], ...]  # offered QoS profiles (v9 dicts)
 
 
 @dataclass(slots=True)
@@ -117,21 +79,42 @@ class _OpenFile:
     last_flush_ns: int = -1
 
 
-def topic_spec(topic: str, msg_type: str, qos: QoSProfile | None = None) -> TopicSpec:
-    """Everything a bag stores about one topic, from the installed message package.
+def session_directory(base: Path, now_ns: int) -> Path:
+    """A new bag directory for one session under `base`: `kneeseat_<YYYYmmdd_HHMMSS>` at
+    `now_ns` (UTC), with `_1`, `_2`, ... appended while that name exists."""
+    now = datetime.fromtimestamp(now_ns / 1e9, tz=timezone.utc)
+    directory = base / f'kneeseat_{now:%Y%m%d_%H%M%S}'
+    n = 1
+    while directory.exists():
+        directory, n = base / f'kneeseat_{now:%Y%m%d_%H%M%S}_{n}', n + 1
+    return directory
+
+
+def open_session(base: Path, now_ns: int, topics: Sequence[tuple[str, str, QoSProfile]],
+                 table_sha256: str, table_path: str, *, split_size_bytes: int = 0,
+                 split_duration_s: float = 0.0) -> BagRecorder:
+    """Start recording one node session into a new bag under `base` (`session_directory`).
+
+    Every topic's definition is found first, so that a topic that cannot be recorded leaves
+    no directory behind.
 
     Args:
-        topic: the topic name, e.g. '/knee/pose'.
-        msg_type: like 'geometry_msgs/msg/PoseStamped'.
-        qos: the QoS offered by its publisher (rclpy's default profile if None).
+        topics: (topic, 'pkg/msg/Type', offered QoS) of every topic to record.
     Raises:
-        RecorderError: the type's definition or hash cannot be found.
+        ConfigError: a topic's message type cannot be recorded (names the `record`
+            parameter).
+        RecorderError: the bag directory cannot be created.
     """
     try:
-        return TopicSpec(topic, msg_type, message_definition(msg_type), type_hash(msg_type),
-                         tuple(qos_to_dicts(qos if qos is not None else DEFAULT_QOS)))
-    except MessageTypeError as err:
-        raise RecorderError(f'cannot record {topic}: {err}') from None
+        specs = [topic_spec(*t) for t in topics]
+    except RecorderError as err:
+        raise ConfigError(f"parameter 'record': {err}") from None
+    recorder = BagRecorder(session_directory(base, now_ns), split_size_bytes=split_size_bytes,
+                           split_duration_s=split_duration_s, table_sha256=table_sha256,
+                           table_path=table_path)
+    for spec in specs:
+        recorder.add_spec(spec)
+    return recorder
 
 
 class BagRecorder:
@@ -229,6 +212,11 @@ class BagRecorder:
         """
         self.add_spec(topic_spec(topic, msg_type, qos))
 
+    def has_topic(self, topic: str) -> bool:
+        """Whether `topic` was added (`add_topic` or `add_spec`)."""
+        with self._lock:
+            return topic in self._specs
+
     def add_spec(self, spec: TopicSpec) -> None:
         """Declare a topic from a ready `TopicSpec` (used by `recover`); idempotent per topic.
 
@@ -249,7 +237,7 @@ class BagRecorder:
                 self._guard(self._register, self._open, spec)
 
     def write(self, topic: str, message: Any, log_time_ns: int, publish_time_ns: int) -> None:
-        """Serialise an rclpy message (CDR, see `msgdefs.serialize`) and append it.
+        """Serialise an rclpy message (CDR, see `cdr.serialize`) and append it.
 
         Never raises on an I/O error: sets `error`, stops writing and returns.
 
@@ -416,151 +404,10 @@ class BagRecorder:
             'custom_data': {f'kneeseat.{k}': v for k, v in self._kneeseat_meta.items()},
             'ros_distro': 'jazzy',
         }
-        tmp = self._dir / 'metadata.yaml.tmp'
-        tmp.write_text(_yaml({'rosbag2_bagfile_information': info}), encoding='utf-8')
-        tmp.replace(self._dir / 'metadata.yaml')
+        write_bytes(self._dir / 'metadata.yaml',
+                    _yaml({'rosbag2_bagfile_information': info}).encode('utf-8'))
 
 
-# -- reading damaged files and recovery ------------------------------------------------------
-@dataclass(slots=True)
-class ReadableContent:
-    """What could be read from one MCAP file, front to back."""
-
-    header: Header | None = None
-    schemas: dict[int, Schema] = field(default_factory=dict)
-    channels: dict[int, Channel] = field(default_factory=dict)
-    messages: list[Message] = field(default_factory=list)
-    metadata: list[Metadata] = field(default_factory=list)
-    complete: bool = False           # the footer was reached
-    problem: str = ''                # why reading stopped early
-
-
-def read_readable(path: Path) -> ReadableContent:
-    """Read every record of an MCAP file up to the first damage (e.g. a crash's truncation).
-
-    Only whole chunks are readable: the chunk being written when a process died is lost.
-    """
-    content = ReadableContent()
-    try:
-        with open(path, 'rb') as stream:
-            for record in StreamReader(stream).records:
-                if isinstance(record, Header):
-                    content.header = record
-                elif isinstance(record, Schema):
-                    content.schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    content.channels[record.id] = record
-                elif isinstance(record, Message):
-                    content.messages.append(record)
-                elif isinstance(record, Metadata):
-                    content.metadata.append(record)
-        content.complete = True
-    except (McapError, EOFError, ValueError, OSError, MemoryError) as err:
-        content.problem = str(err) or type(err).__name__
-    except Exception as err:  # noqa: B902 - zstd and struct errors have no common base
-        content.problem = f'{type(err).__name__}: {err}'
-    return content
-
-
-@dataclass(frozen=True, slots=True)
-class RecoveryReport:
-    """What `recover` wrote."""
-
-    output: Path
-    messages: int
-    files_read: int
-    damaged: tuple[str, ...]     # names of input files that ended early
-
-
-def _split_index(path: Path) -> tuple[int, str]:
-    match = _SPLIT_RE.search(path.name)
-    return (int(match.group(1)) if match else -1, path.name)
-
-
-def _specs_from(content: ReadableContent) -> Iterator[TopicSpec]:
-    for channel in content.channels.values():
-        schema = content.schemas.get(channel.schema_id)
-        if schema is None:
-            continue
-        try:
-            qos = tuple(yaml.safe_load(channel.metadata.get('offered_qos_profiles', '')) or ())
-        except yaml.YAMLError:
-            qos = ()
-        yield TopicSpec(channel.topic, schema.name, schema.data.decode('utf-8', 'replace'),
-                        channel.metadata.get('topic_type_hash', ''), qos)
-
-
-def recover(bag: Path, output: Path | None = None) -> RecoveryReport:
-    """Rewrite every readable message of a (possibly crashed) bag into a new, complete bag.
-
-    Args:
-        bag: a bag directory (its `*.mcap` files are read in split order, with or without
-            a metadata.yaml) or a single `.mcap` file.
-        output: the new bag directory (default: `<bag>_recovered` next to it); one output
-            file per input file that still holds messages.
-    Raises:
-        RecorderError: `bag` has no MCAP file, or `output` cannot be written.
-    """
-    bag = Path(bag)
-    if bag.is_dir():
-        inputs = sorted(bag.glob('*.mcap'), key=_split_index)
-    elif bag.is_file():
-        inputs = [bag]
-    else:
-        inputs = []
-    if not inputs:
-        raise RecorderError(f'no .mcap file found at {bag}; give a bag directory or an MCAP '
-                            'file')
-    stem = bag.name if bag.is_dir() else bag.stem
-    output = Path(output) if output is not None else bag.with_name(f'{stem}_recovered')
-    contents = [read_readable(p) for p in inputs]
-    meta: dict[str, str] = {}
-    for content in contents:
-        for record in content.metadata:
-            if record.name == METADATA_NAME and not meta:
-                meta = dict(record.metadata)
-    recorder = BagRecorder(output, table_sha256=meta.get('table_sha256', ''),
-                           table_path=meta.get('table_path', ''))
-    damaged: list[str] = []
-    try:
-        for path, content in zip(inputs, contents):
-            if not content.complete:
-                damaged.append(path.name)
-            for spec in _specs_from(content):
-                recorder.add_spec(spec)
-            recorder.split()
-            for msg in content.messages:
-                channel = content.channels.get(msg.channel_id)
-                if channel is None or channel.topic not in recorder._specs:
-                    continue
-                recorder.write_raw(channel.topic, msg.data, msg.log_time, msg.publish_time)
-    finally:
-        recorder.close()
-    if recorder.error is not None:
-        raise RecorderError(recorder.error)
-    return RecoveryReport(output, recorder.message_count, len(inputs), tuple(damaged))
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m kneeseat_ros.recorder recover BAG [--output DIR]`."""
-    parser = argparse.ArgumentParser(prog='python -m kneeseat_ros.recorder',
-                                     description='Tools for kneeseat session bags.')
-    sub = parser.add_subparsers(dest='command', required=True)
-    rec = sub.add_parser('recover', help='rewrite the readable part of a crashed bag')
-    rec.add_argument('bag', type=Path, help='bag directory or .mcap file')
-    rec.add_argument('--output', type=Path, default=None,
-                     help='new bag directory (default: <bag>_recovered)')
-    args = parser.parse_args(argv)
-    try:
-        report = recover(args.bag, args.output)
-    except KneeseatError as err:
-        print(f'recover: error: {err}', file=sys.stderr)
-        return 2
-    print(f'recovered {report.messages} messages from {report.files_read} file(s) into '
-          f'{report.output}' + (f' (damaged: {", ".join(report.damaged)})'
-                                if report.damaged else ''))
-    return 0
-
-
-if __name__ == '__main__':
+if __name__ == '__main__':        # `python -m kneeseat_ros.recorder recover BAG`
+    from .recovery import main
     sys.exit(main())

@@ -23,6 +23,7 @@ from typing import Any, TextIO
 
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.well_known import MessageEncoding, Profile
 import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -33,6 +34,8 @@ from rclpy.utilities import remove_ros_args
 import yaml
 
 from kneeseat_core.errors import KneeseatError
+from . import topics
+from .errors import BagError
 from .msgdefs import message_class
 
 __all__ = ['BagError', 'BagMessage', 'PUBLISHER_QOS', 'DEFAULT_TOPICS', 'bag_files',
@@ -41,13 +44,9 @@ __all__ = ['BagError', 'BagMessage', 'PUBLISHER_QOS', 'DEFAULT_TOPICS', 'bag_fil
 PUBLISHER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                            reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.VOLATILE)
-DEFAULT_TOPICS = ('/knee/pose', '/knee/joint_states')
+DEFAULT_TOPICS = (topics.at_root(topics.POSE), topics.at_root(topics.JOINT_STATES))
 PROGRESS_PERIOD_S = 0.5
 WAIT_SLICE_S = 0.1          # longest uninterrupted wait, so Ctrl-C acts at once
-
-
-class BagError(KneeseatError):
-    """A path is not a readable ros2 MCAP bag, or holds none of the requested topics."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,7 +100,7 @@ def _read_file(path: Path, topics: set[str] | None) -> list[BagMessage]:
         with open(path, 'rb') as stream:
             reader = make_reader(stream)
             header = reader.get_header()
-            if header.profile != 'ros2':
+            if header.profile != Profile.ROS2:
                 raise BagError(f'{path} has MCAP profile {header.profile!r}, not ros2; replay '
                                'only plays ROS 2 bags')
             if reader.get_summary() is None:
@@ -111,7 +110,7 @@ def _read_file(path: Path, topics: set[str] | None) -> list[BagMessage]:
             for schema, channel, message in reader.iter_messages(log_time_order=True):
                 if topics is not None and channel.topic not in topics:
                     continue
-                if channel.message_encoding != 'cdr' or schema is None:
+                if channel.message_encoding != MessageEncoding.CDR or schema is None:
                     raise BagError(f'{path}: topic {channel.topic} is encoded as '
                                    f'{channel.message_encoding!r} without a ros2 schema; only '
                                    'cdr messages can be replayed')
@@ -239,10 +238,30 @@ def _stop_on_signals(stop: threading.Event) -> dict[int, Any]:
     """SIGINT/SIGTERM end the replay cleanly (main thread only); returns old handlers."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    previous = {}
+    previous: dict[int, Any] = {}
     for signum in (signal.SIGINT, signal.SIGTERM):
         previous[signum] = signal.signal(signum, lambda *_: stop.set())
     return previous
+
+
+def _wait_for_subscribers(args: argparse.Namespace, pubs: dict[str, Any],
+                          executor: SingleThreadedExecutor, ok: Callable[[], bool]) -> bool:
+    """With --wait-for-subscribers N, spin until every topic has N subscribers; False when
+    the replay must end first.
+
+    Raises:
+        TimeoutError: they did not come within --wait-timeout-s.
+    """
+    if not args.wait_for_subscribers:
+        return True
+    deadline = time.monotonic() + args.wait_timeout_s
+    while min(p.get_subscription_count() for p in pubs.values()) < args.wait_for_subscribers:
+        if not ok():
+            return False
+        if time.monotonic() > deadline:
+            raise TimeoutError
+        executor.spin_once(timeout_sec=WAIT_SLICE_S)
+    return True
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -275,15 +294,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 for topic, cls in classes.items()}
         node.get_logger().info(f'replaying {len(messages)} messages on '
                                f'{", ".join(sorted(pubs))} from {args.bag} at x{args.rate:g}')
-        if args.wait_for_subscribers:
-            deadline = time.monotonic() + args.wait_timeout_s
-            while min(p.get_subscription_count() for p in pubs.values()) \
-                    < args.wait_for_subscribers:
-                if not ok():
-                    return 0
-                if time.monotonic() > deadline:
-                    raise TimeoutError
-                executor.spin_once(timeout_sec=WAIT_SLICE_S)
+        if not _wait_for_subscribers(args, pubs, executor, ok):
+            return 0
         if args.delay_s and not _wait(stop, args.delay_s, ok):
             return 0
         progress = _Progress(None if args.quiet else sys.stderr, len(messages),

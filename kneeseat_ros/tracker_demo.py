@@ -23,8 +23,9 @@ Exit codes: 0 done (errors within 1e-9); 1 the node failed or an error exceeds 1
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
-import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+import functools
 from pathlib import Path
 import signal
 import subprocess
@@ -35,28 +36,43 @@ from typing import Any
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
+from scipy.spatial.transform import Rotation
 import yaml
 
 from kneeseat_core.errors import KneeseatError
-from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_about
+from kneeseat_core.geometry import KneeAxes
 from kneeseat_core.plots import write_png
-from kneeseat_core.table import PoseTable, read_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
 from kneeseat_core.typed import Floats, Poses
+from kneeseat_ros import topics
+from kneeseat_ros.children import child_env
 
 __all__ = ['leg_motion', 'example_registration', 'registration_yaml', 'expected_world',
-           'pose_matrix', 'main']
+           'pose_matrix', 'main', 'MAX_ERROR']
+
+# The node's answers must equal the composition computed here to this (m, and quaternion
+# components): the same arithmetic in another order differs by round-off only.
+MAX_ERROR = 1e-9
 
 
-def pose_matrix(position: Sequence[float], quat_xyzw: Sequence[float]) -> Floats:
+def pose_matrix(position: Sequence[float] | Floats, quat_xyzw: Sequence[float] | Floats) -> Floats:
     """(4, 4) pose from a position (m) and a quaternion (x, y, z, w)."""
     out = np.eye(4)
-    out[:3, :3] = matrix_from_quat(np.asarray(quat_xyzw, dtype=np.float64))
+    out[:3, :3] = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix()
     out[:3, 3] = position
     return out
 
 
+def _quat(rotation: Floats) -> Floats:
+    """(x, y, z, w), w >= 0, of a (3, 3) rotation."""
+    return np.asarray(Rotation.from_matrix(rotation).as_quat(canonical=True))
+
+
 def _rot(axis: Sequence[float], angle: float | Floats) -> Floats:
-    return rotation_about(np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis), angle)
+    """Rotations (3, 3) or (n, 3, 3) about `axis` by `angle` (rad, scalar or (n,))."""
+    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    return Rotation.from_rotvec(np.multiply.outer(angle, k)).as_matrix()
 
 
 def leg_motion(axes: KneeAxes, n: int, duration_s: float = 4.0,
@@ -109,7 +125,7 @@ def registration_yaml(femur: Floats, tibia: Floats) -> str:
     """The registration file's text for two (4, 4) cluster -> bone poses."""
     def entry(m: Floats) -> dict[str, list[float]]:
         return {'translation': [float(v) for v in m[:3, 3]],
-                'rotation': [float(v) for v in quat_from_matrix(m[:3, :3])]}
+                'rotation': [float(v) for v in _quat(m[:3, :3])]}
     return yaml.safe_dump({'femur': entry(femur), 'tibia': entry(tibia)}, sort_keys=False)
 
 
@@ -132,27 +148,33 @@ def _pose_error(got: Any, want: Floats) -> tuple[float, float]:
     """(position error m, largest quaternion component error up to sign) of a PoseStamped."""
     p, o = got.pose.position, got.pose.orientation
     q = np.array([o.x, o.y, o.z, o.w])
-    qw = quat_from_matrix(want[:3, :3])
+    qw = _quat(want[:3, :3])
     return (float(np.abs(np.array([p.x, p.y, p.z]) - want[:3, 3]).max()),
             float(min(np.abs(q - qw).max(), np.abs(q + qw).max())))
 
 
-def _run(args: argparse.Namespace) -> int:
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, QoSReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
+@dataclass(frozen=True, slots=True, eq=False)
+class _Walk:
+    """The synthetic session: the table, the registration and the clusters' world poses."""
 
-    from geometry_msgs.msg import PoseStamped
-    from kneeseat_ros.conversions import pose_stamped, stamp_from_ns, stamp_ns
+    table_path: Path
+    table: PoseTable
+    registration: Path
+    reg_femur: Floats            # (4, 4) femur cluster -> femur
+    reg_tibia: Floats            # (4, 4) tibia cluster -> tibia
+    femur_cluster: Poses         # (n, 4, 4) world poses
+    tibia_cluster: Poses
+    names: tuple[str, ...]       # the reference, then the moving bodies
 
+
+def _prepare(args: argparse.Namespace) -> _Walk:
+    """Steps 1 and the motion: table, registration file, the clusters' world poses."""
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     if args.table is not None:
         table_path = args.table
     else:
-        from kneeseat_ros.demo import prepare_table
+        from kneeseat_ros.demo_table import prepare_table
         table_path, _, why = prepare_table(out, 2.0, 2)
         print(f'tracker_demo: default knee table {table_path}: {why}')
     table = read_table(table_path)
@@ -163,97 +185,137 @@ def _run(args: argparse.Namespace) -> int:
     v_range = (float(table.varus_rad[0]) * 0.8, float(table.varus_rad[-1]) * 0.8)
     femur, tibia, _ = leg_motion(table.axes, args.samples, args.samples / args.rate_hz,
                                  f_range, v_range)
-    femur_cluster = femur @ np.linalg.inv(reg_f)
-    tibia_cluster = tibia @ np.linalg.inv(reg_t)
-    names = (str(table.metadata['reference']['name']), *table.bodies)
+    return _Walk(table_path, table, registration, reg_f, reg_t, femur @ np.linalg.inv(reg_f),
+                 tibia @ np.linalg.inv(reg_t),
+                 (str(table.metadata['reference']['name']), *table.bodies))
 
-    env = dict(os.environ)
-    prefixes = [p for p in env.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    env['AMENT_PREFIX_PATH'] = os.pathsep.join([sys.prefix, *prefixes])
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    env.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 1))
-    log = out / 'tracker_server.log'
+
+class _Tracker:
+    """The demo's own rclpy node: publishes the clusters, collects the world poses."""
+
+    def __init__(self, walk: _Walk, env: dict[str, str], server: subprocess.Popen[Any],
+                 log: Path) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, QoSReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
+
+        from geometry_msgs.msg import PoseStamped
+        self._rclpy, self.walk, self.server, self.log = rclpy, walk, server, log
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=int(env['ROS_DOMAIN_ID']),
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node('tracker_demo', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        reliable = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
+        self.pubs = [self.node.create_publisher(PoseStamped, topic, reliable)
+                     for topic in (topics.TRACKER_FEMUR, topics.TRACKER_TIBIA)]
+        self.answers: dict[tuple[str, int], Any] = {}
+        for name in walk.names:
+            self.node.create_subscription(PoseStamped, topics.body_world_pose(name),
+                                          functools.partial(self._store, name), reliable)
+
+    def _store(self, name: str, msg: Any) -> None:
+        from kneeseat_ros.conversions import stamp_ns
+        self.answers[(name, stamp_ns(msg.header.stamp))] = msg
+
+    def spin_until(self, done: Callable[[], bool], timeout_s: float, what: str) -> None:
+        """Spin until `done()`; KneeseatError when the server died or time ran out."""
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if self.server.poll() is not None or time.monotonic() > deadline:
+                raise KneeseatError(f'{what} did not happen; server log: {self.log}')
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def publish(self, k: int, stamp_ns_: int) -> None:
+        """Both clusters' world poses of sample `k`, stamped `stamp_ns_`."""
+        from kneeseat_ros.conversions import pose_stamped, stamp_from_ns
+        stamp = stamp_from_ns(stamp_ns_)
+        for pub, m in zip(self.pubs, (self.walk.femur_cluster[k], self.walk.tibia_cluster[k])):
+            pub.publish(pose_stamped(m[:3, 3], _quat(m[:3, :3]), stamp, 'world'))
+
+    def warm_up(self) -> None:
+        """Wait for discovery; the first best-effort samples after it can be lost, so send
+        the first pose with fresh stamps (earlier than the session) until one is answered."""
+        names = self.walk.names
+        self.spin_until(lambda: all(p.get_subscription_count() for p in self.pubs)
+                        and all(self.node.count_publishers(topics.body_world_pose(n))
+                                for n in names), 30.0, 'discovery of table_server')
+        warm_ns = time.time_ns()
+        deadline = time.monotonic() + 30.0
+        while not any(key[1] < warm_ns + 10**9 for key in self.answers):
+            if self.server.poll() is not None or time.monotonic() > deadline:
+                raise KneeseatError(f'no answer to the warm-up pairs; server log: {self.log}')
+            self.publish(0, time.time_ns())
+            self.executor.spin_once(timeout_sec=0.1)
+        self.answers.clear()
+
+    def session(self, samples: int, rate_hz: float) -> list[int]:
+        """Send every pair and wait for each answer; returns the stamps (ns)."""
+        start_ns = time.time_ns() + 10**9
+        stamps = []
+        for k in range(samples):
+            stamps.append(start_ns + int(k * 1e9 / rate_hz))
+            self.publish(k, stamps[-1])
+
+            def answered(key: int = stamps[-1]) -> bool:
+                return all((n, key) in self.answers for n in self.walk.names)
+
+            self.spin_until(answered, 10.0, f'the answer to pair {k}')
+        return stamps
+
+    def close(self) -> None:
+        """Destroy the node and its context."""
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+
+
+def _compare(walk: _Walk, answers: dict[tuple[str, int], Any],
+             stamps: list[int]) -> tuple[float, float, Floats]:
+    """Largest position and quaternion error of the answers against `expected_world`, and
+    every answer as (names, samples, 4, 4) world poses."""
+    pos_err = rot_err = 0.0
+    worlds = np.zeros((len(walk.names), len(stamps), 4, 4))
+    for k, key in enumerate(stamps):
+        want_f, want_b = expected_world(walk.table, walk.femur_cluster[k],
+                                        walk.tibia_cluster[k], walk.reg_femur, walk.reg_tibia)
+        for i, (name, want) in enumerate(zip(walk.names, [want_f, *want_b])):
+            got = answers[(name, key)]
+            e_p, e_q = _pose_error(got, want)
+            pos_err, rot_err = max(pos_err, e_p), max(rot_err, e_q)
+            p, o = got.pose.position, got.pose.orientation
+            worlds[i, k] = pose_matrix((p.x, p.y, p.z), (o.x, o.y, o.z, o.w))
+    return pos_err, rot_err, worlds
+
+
+def _run(args: argparse.Namespace) -> int:
+    walk = _prepare(args)
+    env = child_env()
+    log = args.out / 'tracker_server.log'
     with open(log, 'wb') as stream:
         server = subprocess.Popen(
             [str(Path(sys.prefix) / 'bin' / 'table_server'), '--ros-args', '-p',
-             f'table:={table_path}', '-p', f'tracker.registration:={registration}'],
+             f'table:={walk.table_path}', '-p', f'tracker.registration:={walk.registration}'],
             stdout=stream, stderr=subprocess.STDOUT, env=env)
-    context = Context()
-    rclpy.init(context=context, domain_id=int(env['ROS_DOMAIN_ID']),
-               signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('tracker_demo', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    reliable = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
-    pubs = [node.create_publisher(PoseStamped, f'tracker/{s}/pose', reliable)
-            for s in ('femur', 'tibia')]
-    answers: dict[tuple[str, int], Any] = {}
-    for name in names:
-        node.create_subscription(
-            PoseStamped, f'knee/{name}/world_pose',
-            lambda m, name=name: answers.__setitem__((name, stamp_ns(m.header.stamp)), m),
-            reliable)
-
-    def spin_until(done: Any, timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not done():
-            if server.poll() is not None or time.monotonic() > deadline:
-                raise KneeseatError(f'{what} did not happen; server log: {log}')
-            executor.spin_once(timeout_sec=0.02)
-
+    tracker = _Tracker(walk, env, server, log)
     try:
-        spin_until(lambda: all(p.get_subscription_count() for p in pubs)
-                   and all(node.count_publishers(f'knee/{n}/world_pose') for n in names),
-                   30.0, 'discovery of table_server')
-        # warm-up: the first best-effort samples after discovery can be lost; send the
-        # first pose with fresh stamps (earlier than the session) until one is answered
-        warm_ns = time.time_ns()
-        deadline = time.monotonic() + 30.0
-        while not any(key[1] < warm_ns + 10**9 for key in answers):
-            if server.poll() is not None or time.monotonic() > deadline:
-                raise KneeseatError(f'no answer to the warm-up pairs; server log: {log}')
-            stamp = stamp_from_ns(time.time_ns())
-            for pub, m in zip(pubs, (femur_cluster[0], tibia_cluster[0])):
-                pub.publish(pose_stamped(m[:3, 3], quat_from_matrix(m[:3, :3]), stamp,
-                                         'world'))
-            executor.spin_once(timeout_sec=0.1)
-        answers.clear()
-        start_ns = time.time_ns() + 10**9
-        stamps = []
-        for k in range(args.samples):
-            stamp = stamp_from_ns(start_ns + int(k * 1e9 / args.rate_hz))
-            stamps.append(stamp_ns(stamp))
-            for pub, m in zip(pubs, (femur_cluster[k], tibia_cluster[k])):
-                pub.publish(pose_stamped(m[:3, 3], quat_from_matrix(m[:3, :3]), stamp,
-                                         'world'))
-
-            def answered(key: int = stamps[-1]) -> bool:
-                return all((n, key) in answers for n in names)
-
-            spin_until(answered, 10.0, f'the answer to pair {k}')
-        pos_err = rot_err = 0.0
-        worlds = np.zeros((len(names), args.samples, 4, 4))
-        for k, key in enumerate(stamps):
-            want_f, want_b = expected_world(table, femur_cluster[k], tibia_cluster[k],
-                                            reg_f, reg_t)
-            for i, (name, want) in enumerate(zip(names, [want_f, *want_b])):
-                got = answers[(name, key)]
-                e_p, e_q = _pose_error(got, want)
-                pos_err, rot_err = max(pos_err, e_p), max(rot_err, e_q)
-                p, o = got.pose.position, got.pose.orientation
-                worlds[i, k] = pose_matrix((p.x, p.y, p.z), (o.x, o.y, o.z, o.w))
+        tracker.warm_up()
+        stamps = tracker.session(args.samples, args.rate_hz)
+        pos_err, rot_err, worlds = _compare(walk, tracker.answers, stamps)
     finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        tracker.close()
         server.send_signal(signal.SIGINT)
         rc = server.wait(timeout=15)
-    png = plot_world(worlds, names, out / 'tracker_world.png', _mesh_points(table, table_path))
+    png = plot_world(worlds, walk.names, args.out / 'tracker_world.png',
+                     _mesh_points(walk.table, walk.table_path))
     print(f'tracker_demo: {args.samples} pairs at {args.rate_hz:g} Hz through table_server '
           f'(exit {rc}); every answer arrived; largest error against the composition of '
           f'the inputs, the registration and the table: position {pos_err:.2e} m, '
           f'quaternion component {rot_err:.2e}; picture {png}')
-    return 0 if max(pos_err, rot_err) <= 1e-9 and rc == 0 else 1
+    return 0 if max(pos_err, rot_err) <= MAX_ERROR and rc == 0 else 1
 
 
 def _mesh_points(table: PoseTable, table_path: Path,

@@ -1,4 +1,4 @@
-"""`kneeseat build` end to end, and a real built table refusing damage (issue 3).
+"""`kneeseat build` end to end, and a real built table refusing damage.
 
 test_table.py covers every rejection on synthetic tables; here the same failures are made
 on a table the CLI really built from the default knee (a coarse grid, seconds), and each
@@ -19,7 +19,7 @@ import pytest
 from kneeseat_core.build import materialise_default_knee
 from kneeseat_core.cli import main
 from kneeseat_core.errors import TableError
-from kneeseat_core.table import read_table
+from kneeseat_core.table_io import read_table
 
 GRID = ('--flexion-grid', '0,-90,30', '--varus-grid', '-10,10,10')
 
@@ -142,7 +142,7 @@ def test_verify_judges_only_the_cells_claimed_at_rest(built: tuple[Path, Path], 
     from dataclasses import replace
 
     from kneeseat_core.status import Status
-    from kneeseat_core.table import with_hash, write_table
+    from kneeseat_core.table_io import with_hash, write_table
     table = read_table(built[0])
     converged = np.array(table.converged, dtype=bool)
     codes = np.array(table.status)

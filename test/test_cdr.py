@@ -10,11 +10,10 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosidl_parser import definition as idl
 from sensor_msgs.msg import JointState
 
-from kneeseat_ros.cdr import (CdrError, decode_joint_state, decode_pose_stamped,
-                              encode_joint_state, encode_pose_stamped, PoseStampedWriter,
-                              TfWriter)
+from kneeseat_ros.cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state,
+                              encode_pose_stamped, PoseStampedWriter, serialize, TfWriter)
 from kneeseat_ros.conversions import pose_stamped, stamp_from_ns
-from kneeseat_ros.msgdefs import serialize
+from kneeseat_ros.errors import CdrError
 
 
 @pytest.mark.parametrize('frame', ['', 'f', 'femur', 'abc', 'world_frame_x', 'tibia01'])
@@ -49,7 +48,7 @@ def test_joint_state_round_trips(names: list[str], position: list[float],
 
 
 class _TFMessage:
-    """tf2_msgs/TFMessage's layout for msgdefs.serialize (tf2_msgs has no pip wheel)."""
+    """tf2_msgs/TFMessage's layout for cdr.serialize (tf2_msgs has no pip wheel)."""
 
     SLOT_TYPES = (idl.UnboundedSequence(idl.NamespacedType(['geometry_msgs', 'msg'],
                                                            'TransformStamped')),)

@@ -1,6 +1,6 @@
 """The full demo: build -> table_server recording -> replay -> stop -> summary and plot.
 
-The end-to-end test is the round trip of issue 5: generated bag -> replay -> node ->
+The end-to-end test is the round trip: generated bag -> replay -> node ->
 recording; the recording is read back with an independent reader (rosbags) and every output
 equals the interpolation of its input; metadata.yaml's counts and time ranges match the file.
 """
@@ -22,8 +22,11 @@ from rosbags.typesys import get_typestore, Stores
 import yaml
 
 from kneeseat_core.geometry import matrix_from_quat
-from kneeseat_core.table import PoseTable, read_table
-from kneeseat_ros.demo import demo_bag, main, PLOT_NAME, PLOT_SIZE_PX, prepare_table
+from kneeseat_core.plots import SESSION_SIZE_PX
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
+from kneeseat_ros.demo import main, PLOT_NAME
+from kneeseat_ros.demo_table import demo_bag, prepare_table
 from kneeseat_ros.replay import load_messages
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -140,7 +143,7 @@ def test_demo_round_trip_and_rerun(tmp_path: Path) -> None:
     p99 = float(summary_value(first.stdout, r'p99 ([0-9.]+) ms'))
     assert 0.0 < p50 <= p99 < 1000.0
     png = out / PLOT_NAME
-    assert png_size(png) == PLOT_SIZE_PX
+    assert png_size(png) == SESSION_SIZE_PX
 
     # idempotent: the table is reused, a new session is recorded, the plot rewritten
     second = run_demo(out, '--rate', '2')
@@ -150,7 +153,7 @@ def test_demo_round_trip_and_rerun(tmp_path: Path) -> None:
     sessions = sorted((out / 'sessions').iterdir())
     assert len(sessions) == 2
     check_session(sessions[-1], table, sent)
-    assert png_size(png) == PLOT_SIZE_PX
+    assert png_size(png) == SESSION_SIZE_PX
 
 
 @pytest.mark.slow

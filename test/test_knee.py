@@ -33,7 +33,8 @@ from kneeseat_core.meshes import load_mesh
 from kneeseat_core.settle import settle
 from kneeseat_core.sweep import warm_start
 from kneeseat_core.referee import Referee
-from kneeseat_core.table import PoseTable, read_table, write_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table, write_table
 from kneeseat_core.typed import Floats
 
 MAX_STEP_MM = 1.0           # Show list: adjacent cells differ by <= 1 mm ...

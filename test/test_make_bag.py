@@ -134,23 +134,21 @@ def test_gait_bag_with_joint_states(tmp_path: Path) -> None:
 
 
 def test_table_axes(tmp_path: Path) -> None:
-    from kneeseat_core import table as table_mod
+    from kneeseat_core.table import PoseTable
+    from kneeseat_core.table_format import SCHEMA
+    from kneeseat_core.table_io import write_table
     axes = {'flexion': [1.0, 0.0, 0.0], 'varus': [0.0, 0.0, 1.0], 'long': [0.0, 1.0, 0.0]}
-    meta = {'schema': table_mod.SCHEMA, 'kneeseat_version': '0', 'axes': axes,
+    meta = {'schema': SCHEMA, 'kneeseat_version': '0', 'axes': axes,
             'reference': {'name': 'femur', 'frame': 'femur_ref', 'mesh': 'f.stl',
                           'mesh_sha256': ''},
             'bodies': [{'name': 'tibia', 'frame': 'tibia', 'mesh': 't.stl', 'mesh_sha256': '',
                         'display_mesh': None}],
             'config': {}, 'settle': {}, 'arrays_sha256': '', 'built': '', 'summary': {}}
     f, v = np.radians([-10.0, 0.0]), np.radians([-5.0, 5.0])
-    table = table_mod.PoseTable(f, v, np.zeros((1, 2, 2, 3)),
-                                np.tile([0.0, 0.0, 0.0, 1.0], (1, 2, 2, 1)),
-                                np.ones((1, 2, 2), bool), np.ones((1, 2, 2), np.int64), meta)
+    table = PoseTable(f, v, np.zeros((1, 2, 2, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (1, 2, 2, 1)),
+                      np.ones((1, 2, 2), bool), np.ones((1, 2, 2), np.int64), meta)
     path = tmp_path / 'knee.npz'
-    try:
-        table_mod.write_table(path, table)
-    except NotImplementedError:
-        pytest.skip('kneeseat_core.table.write_table is not implemented yet')
+    write_table(path, table)
     csv = tmp_path / 'a.csv'
     csv.write_text('time_s,flexion_deg,varus_deg\n0,-20,3\n')
     assert main([str(tmp_path / 'bag'), '--csv', str(csv), '--table', str(path)]) == 0

@@ -1,4 +1,4 @@
-"""Bodies made of several meshes (issue 11, item 1).
+"""Bodies made of several meshes, moved as one rigid body.
 
 A body's collision meshes are one rigid body: two separate sphere files of one body over
 two bowls rest where the *pair* rests (analytic), which is where the same spheres in one
@@ -22,12 +22,16 @@ import trimesh
 from conftest import REPO
 import shapes
 from kneeseat_core.build import build_table, materialise_default_knee
-from kneeseat_core.cli import _table_meshes, main
+from kneeseat_core.cli import main
 from kneeseat_core.errors import ConfigError, TableError
+from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import matrix_from_quat, rotation_about
 from kneeseat_core.knee import load_config
 from kneeseat_core.sweep import InlineExecutor
-from kneeseat_core.table import describe, file_sha256, PoseTable, read_table
+from kneeseat_core.table_commands import _table_meshes
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
+from kneeseat_core.table_report import describe
 
 MM = 1e-3
 RADIUS, BOWL_R, DEPTH = 8 * MM, 16 * MM, 12 * MM

@@ -1,4 +1,4 @@
-"""The natural knee (issue 11): its configs, and a coarse table checked at rest.
+"""The natural knee: its configs, and a coarse table checked at rest.
 
 The meshes live outside the repository (../shared/data/natural_knee); without them these
 tests skip. The rest check uses python-fcl objects of its own and nothing of the settle but
@@ -26,7 +26,8 @@ from kneeseat_core.cli import main
 from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_about
 from kneeseat_core.kinematics import knee_kinematics, table_landmarks
 from kneeseat_core.knee import KneeConfig, load_config
-from kneeseat_core.table import PoseTable, read_table
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
 
 DATA = SHARED_DATA / 'natural_knee'
 CONFIG = REPO / 'config' / 'natural_knee.yaml'

@@ -14,9 +14,8 @@ import trimesh
 from kneeseat_core.errors import ConfigError, KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PANEL_IN,
-                                 PNG_KEY_NONCONVERGED, plot_convergence_map, plot_table,
-                                 render_table,
-                                 RENDER_EXTRA_IN, RENDER_PANEL_IN)
+                                 PNG_KEY_NONCONVERGED, plot_convergence_map, plot_table)
+from kneeseat_core.render import render_table, RENDER_EXTRA_IN, RENDER_PANEL_IN
 from kneeseat_core.status import Status
 from kneeseat_core.table import PoseTable
 
@@ -262,7 +261,7 @@ def test_render_of_the_real_knee_implants(tmp_path: Path) -> None:
 
 def test_simplification_keeps_the_shape_within_budget() -> None:
     """Vertex clustering: at most the budget, same bounding box to within a cell or two."""
-    from kneeseat_core.plots import _simplified
+    from kneeseat_core.render import _simplified
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.03)        # 20,480 faces
     vertices, faces, closed = _simplified(sphere, 2000)
     assert closed and 500 < len(faces) <= 2000

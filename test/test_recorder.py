@@ -21,9 +21,11 @@ from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
 import yaml
 
-from kneeseat_ros.msgdefs import message_definition, SEPARATOR, serialize, type_hash
-from kneeseat_ros.recorder import (BagRecorder, qos_to_dicts, read_readable, recover,
-                                   RecorderError)
+from kneeseat_ros.errors import RecorderError
+from kneeseat_ros.cdr import serialize
+from kneeseat_ros.msgdefs import message_definition, qos_to_dicts, SEPARATOR, type_hash
+from kneeseat_ros.recorder import BagRecorder
+from kneeseat_ros.recovery import read_readable, recover
 
 T0 = 1_700_000_000_000_000_000
 SHA = 'ab' * 32
@@ -343,7 +345,7 @@ def test_sigterm_leaves_a_complete_bag(tmp_path: Path) -> None:
 
 def test_recover_cli_reports_missing_bag(tmp_path: Path,
                                          capsys: pytest.CaptureFixture[str]) -> None:
-    from kneeseat_ros.recorder import main
+    from kneeseat_ros.recovery import main
     assert main(['recover', str(tmp_path / 'nothing')]) == 2
     err = capsys.readouterr().err
     assert err.startswith('recover: error: no .mcap file found') and err.count('\n') == 1

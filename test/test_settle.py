@@ -1,4 +1,4 @@
-"""The settle engine against analytic rest poses (issue 2, "Show" list for settling).
+"""The settle engine against analytic rest poses.
 
 Scenes (test/settle_cases.py): a sphere in a spherical bowl, a sphere in a cone, a cylinder
 in a V groove (FIG. 13: across the groove determined, along it free), an elongated key
@@ -6,9 +6,9 @@ started 20 degrees off about the push that must turn into its pocket, and two ri
 joined spheres over two bowls of different depth. Each plain, with a tilted push and with
 the whole scene rotated; each plain scene once more at millimetre scale through the CLI.
 
-Thresholds are the issue's, never loosened: with the default method the position error
-in the determined directions is within 2 x resolution + 0.05 mm, and the rotation about
-the push (where determined) within 1.5 x the rotation resolution, that is
+Thresholds, never loosened (docs/design.md, "The settle"): with the default method the
+position error in the determined directions is within 2 x resolution + 0.05 mm, and the
+rotation about the push (where determined) within 1.5 x the rotation resolution, that is
 resolution / (farthest-vertex radius about the push axis) unless a test sets
 `rotation_resolution_rad` (the 0.1 degree runs).
 """

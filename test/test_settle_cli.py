@@ -1,4 +1,4 @@
-"""`kneeseat settle` through `main([...])`: the DESIGN.md contract and its bad inputs.
+"""`kneeseat settle` through `main([...])`: its contract (docs/design.md) and its bad inputs.
 
 Exit codes: 0 converged, 3 not converged (JSON still printed), 4 no contact along the
 push, 2 bad input with exactly one line on stderr and no traceback.

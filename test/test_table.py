@@ -19,12 +19,14 @@ import zipfile
 import numpy as np
 import pytest
 
-from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, OutOfRangeError,
-                                  TableError)
+from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, NonFiniteError,
+                                  OutOfRangeError, TableError)
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_angle
-from kneeseat_core.table import (arrays_sha256, CSV_COLUMNS, describe, export_csv, file_sha256,
-                                 lookup_json, PoseTable, read_table, SCHEMA, with_hash,
-                                 write_table)
+from kneeseat_core.files import file_sha256
+from kneeseat_core.table import arrays_sha256, PoseTable
+from kneeseat_core.table_format import SCHEMA
+from kneeseat_core.table_io import read_table, with_hash, write_table
+from kneeseat_core.table_report import CSV_COLUMNS, describe, export_csv, lookup_json
 
 # TKA knee frame: X anterior, Y superior, Z lateral -> flexion about Z, varus about X.
 AXES = {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0], 'long': [0.0, 1.0, 0.0]}
@@ -305,11 +307,12 @@ def test_drop_raises_out_of_range(table: PoseTable) -> None:
 
 @pytest.mark.parametrize('mode', ['clamp', 'drop'])
 @pytest.mark.parametrize('f, v', [(math.nan, 0.0), (-0.5, math.inf), (-math.inf, 0.0)])
-def test_non_finite_angles_raise_the_root_error(table: PoseTable, mode: str, f: float,
-                                                v: float) -> None:
-    with pytest.raises(KneeseatError, match='must be finite') as info:
+def test_non_finite_angles_raise_their_own_error(table: PoseTable, mode: str, f: float,
+                                                 v: float) -> None:
+    with pytest.raises(NonFiniteError, match='must be finite') as info:
         table.interpolate(f, v, mode)  # type: ignore[arg-type]
-    assert type(info.value) is KneeseatError
+    assert isinstance(info.value, KneeseatError)
+    assert not isinstance(info.value, (OutOfRangeError, TableError, ConfigError))
 
 
 def test_nonconverged_cells_are_flagged_only_where_they_weigh() -> None:
@@ -589,7 +592,7 @@ def test_failed_write_mid_file_keeps_the_old_table(table: PoseTable, tmp_path: P
         import resource, signal
         from pathlib import Path
         from kneeseat_core.errors import TableError
-        from kneeseat_core.table import read_table, write_table
+        from kneeseat_core.table_io import read_table, write_table
         big = read_table(Path({str(tmp_path / 'big.npz')!r}))
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))

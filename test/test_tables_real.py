@@ -27,7 +27,9 @@ from kneeseat_core.continuity import continuity
 from kneeseat_core.geometry import matrix_from_quat, pose_from
 from kneeseat_core.knee import KneeConfig, load_config
 from kneeseat_core.status import AT_REST, Status
-from kneeseat_core.table import PoseTable, read_table, status_map
+from kneeseat_core.table import PoseTable
+from kneeseat_core.table_io import read_table
+from kneeseat_core.table_report import status_map
 from kneeseat_core.typed import Floats, Pose
 
 REPO = Path(__file__).resolve().parents[1]

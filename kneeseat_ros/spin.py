@@ -1,0 +1,271 @@
+"""How the node runs: started from the command line, its inputs spun in the main thread and
+everything else in rclpy's executor, stopped cleanly on a signal.
+
+`run_node` is the console entry: --help prints the usage; rclpy.init's own complaint about
+bad --ros-args is replaced by one line; a `KneeseatError` while the node starts (bad
+parameter, missing table) is one line and exit code 2; SIGINT/SIGTERM end the spin and the
+node is destroyed (its recording finalised) before rclpy shuts down, exit code 0.
+
+`serve` waits on a wait set holding only the inputs and one guard condition (stop) and
+drains every ready input: per message it pays one rcl_wait over 3 entities. rcl_wait's cost
+grows with the entities in the set (each is attached to and detached from the wait), and a
+node's timers, parameter services and ~/reload are 12 more; rclpy's executor also rebuilds
+its wait set in Python on every call. So timers, services and parameters run in rclpy's
+executor in a second thread, which sleeps until one of them is ready (the inputs' callback
+group, `InputsGroup`, keeps the inputs out of it). An idle node sleeps in both. The wait
+also times out every `SHUTDOWN_CHECK_NS` to look at the context, as a safety net for
+shutdown. Uses rclpy's WaitSet and take_message as rclpy.executors does (Jazzy).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+import contextlib
+import gc
+import os
+import sys
+import tempfile
+import threading
+from typing import Any, Protocol
+
+import rclpy
+from rclpy.callback_groups import CallbackGroup
+from rclpy.exceptions import InvalidHandle
+from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
+from rclpy.guard_condition import GuardCondition
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+from rclpy.subscription import Subscription
+
+from kneeseat_core.errors import KneeseatError
+
+__all__ = ['InputsGroup', 'Handler', 'drain', 'serve', 'run_node', 'DRAIN_MAX',
+           'SHUTDOWN_CHECK_NS', 'RCLError']
+
+RCLError = _rclpy.RCLError
+# Messages taken per wake-up of one input (see `drain`).
+DRAIN_MAX = 100
+# The input wait also wakes this often to look at the context (a shutdown whose
+# guard-condition trigger lands before the context is down would otherwise be missed).
+SHUTDOWN_CHECK_NS = 1_000_000_000
+
+Handler = Callable[[Any], None]
+
+
+class InputsGroup(CallbackGroup):
+    """The inputs' callback group: kept out of rclpy's executor while `serve()` runs.
+
+    serve() waits on the inputs itself in the main thread and leaves every other entity
+    (timers, services, parameter services) to an executor in a second thread; a node added
+    to another executor (tests, composition) gets its inputs from it. The inputs' QoS event
+    handlers stay out too: with rmw_fastrtps a subscription's event wakes the wait on every
+    message of that subscription (the executor thread then spun at 60% of a core at 2 kHz);
+    the inputs accept every publisher QoS by default, so these events practically never fire.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.direct = False
+
+    def can_execute(self, entity: Any) -> bool:
+        """Whether an executor may run `entity` now: not while `serve()` takes the inputs."""
+        return not self.direct
+
+    def beginning_execution(self, entity: Any) -> bool:
+        """rclpy's hook before a callback runs: the same answer as `can_execute`."""
+        return self.can_execute(entity)
+
+    def ending_execution(self, entity: Any) -> None:
+        """rclpy's hook after a callback ran: nothing to release."""
+
+
+def drain(sub: Subscription, handle: Handler) -> None:
+    """Handle what else is queued on `sub` now, in order, without the executor.
+
+    One pass of rclpy's Python executor (wait set rebuilt over every entity) costs several
+    times the answer itself; after a scheduling hiccup the backlog is cleared at the cost of
+    the answers alone. Uses the same `take_message` call as
+    `rclpy.executors.Executor._take_subscription` (Jazzy).
+    """
+    for _ in range(DRAIN_MAX):
+        with sub.handle:
+            taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        if taken is None:
+            return
+        handle(taken[0])
+
+
+def serve(node: Node, group: InputsGroup,
+          inputs: Sequence[tuple[Subscription, Handler]]) -> None:
+    """Spin `node` until shutdown: `inputs` in this thread, everything else in a second one.
+
+    Raises:
+        BaseException: whatever the executor thread raised (re-raised here).
+    """
+    executor = SingleThreadedExecutor(context=node.context)
+    group.direct = True
+    executor.add_node(node)
+    failed: list[BaseException] = []
+    # woken by the executor thread's end (SIGINT/SIGTERM reach it through rclpy's own
+    # signal guard condition) and by a shutdown of the context from Python
+    stop = GuardCondition(None, None, context=node.context)
+
+    def wake() -> None:
+        with contextlib.suppress(InvalidHandle):
+            stop.trigger()
+
+    node.context.on_shutdown(wake)
+    thread = threading.Thread(target=_housekeeping, args=(node, executor, failed, wake),
+                              name='table_server housekeeping', daemon=True)
+    # everything alive now lives as long as the node: keep it out of the cyclic
+    # collector's full passes, whose pauses grow with the heap (tables, imports)
+    gc.collect()
+    gc.freeze()
+    thread.start()
+    try:
+        _wait_loop(node, inputs, stop)
+    finally:
+        # After a signal the executor thread ends by itself (its context is down) and
+        # nothing is destroyed here: rclpy's signal thread may still be triggering the
+        # executor's signal guard condition, and executor.shutdown() would destroy it
+        # under that thread (a segfault in rmw's trigger, seen once under load). Only a
+        # stop with the context still up (an error here) shuts the executor down.
+        if node.context.ok():
+            executor.shutdown(timeout_sec=5.0)
+        thread.join(timeout=10.0)
+        if thread.is_alive():
+            executor.shutdown(timeout_sec=5.0)
+            thread.join(timeout=10.0)
+        group.direct = False
+        executor.remove_node(node)
+    if failed:
+        raise failed[0]
+
+
+def _housekeeping(node: Node, executor: SingleThreadedExecutor, failed: list[BaseException],
+                  wake: Callable[[], None]) -> None:
+    """The second thread: rclpy's executor for timers, services and parameters."""
+    try:
+        executor.spin()
+    except (ExternalShutdownException, ShutdownException):
+        pass
+    except RCLError:
+        if node.context.ok():
+            raise
+    except BaseException as err:        # re-raised in the main thread
+        failed.append(err)
+        node.context.try_shutdown()
+    finally:                            # wake the main thread: it stops too
+        wake()
+
+
+def _wait_loop(node: Node, inputs: Sequence[tuple[Subscription, Handler]],
+               stop: GuardCondition) -> None:
+    """Wait on the inputs and `stop`; drain every ready input; return once the context
+    is down."""
+    guards = [stop]
+    wait_set = _rclpy.WaitSet(len(inputs), len(guards), 0, 0, 0, 0, node.context.handle)
+    context_handle = node.context.handle
+    assert context_handle is not None           # the node's context is initialised
+    with contextlib.ExitStack() as held:
+        for sub, _ in inputs:
+            held.enter_context(sub.handle)
+        for guard in guards:
+            held.enter_context(guard.handle)
+        held.enter_context(context_handle)
+        pairs = [(sub, sub.handle, handle) for sub, handle in inputs]
+        while node.context.ok():
+            wait_set.clear_entities()
+            for _, sub_handle, _ in pairs:
+                wait_set.add_subscription(sub_handle)
+            for guard in guards:
+                wait_set.add_guard_condition(guard.handle)
+            wait_set.wait(SHUTDOWN_CHECK_NS)
+            ready = wait_set.get_ready_entities('subscription')
+            for sub, sub_handle, handle in pairs:
+                if sub_handle.pointer in ready:
+                    drain(sub, handle)
+
+
+@contextlib.contextmanager
+def _stderr_kept_on_success() -> Iterator[None]:
+    """Hold what C code writes on stderr (fd 2) in the block; drop it if the block raises.
+
+    rcl logs its own "[ERROR] [rcl]: Failed to parse global arguments" before rclpy.init
+    raises on bad --ros-args; main() replaces both with one line.
+    """
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        failed = True
+        try:
+            yield
+            failed = False
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            if not failed:
+                held.seek(0)
+                sys.stderr.buffer.write(held.read())
+                sys.stderr.flush()
+
+
+def _wants_help(args: list[str]) -> bool:
+    return any(a in ('-h', '--help') for a in args)
+
+
+class ServingNode(Protocol):
+    """A node `run_node` can run: it spins itself until shutdown."""
+
+    def serve(self) -> None:
+        """Spin until the context shuts down."""
+
+    def destroy_node(self) -> None:
+        """Release the node's resources (and finalise what it records)."""
+
+
+def run_node(make: Callable[[], ServingNode], prog: str, usage: str,
+             args: list[str] | None = None) -> int:
+    """Run the node `make()` builds until SIGINT/SIGTERM (module docstring).
+
+    Args:
+        make: builds the node (after rclpy.init); may raise KneeseatError.
+        prog: the program's name in error lines.
+        usage: printed for -h/--help.
+        args: the command line, program name first (default sys.argv).
+    Returns:
+        0 on a clean stop (SIGINT, SIGTERM, shutdown) or after --help, 2 on bad
+        parameters, table or command-line arguments.
+    """
+    argv = list(sys.argv if args is None else args)
+    if _wants_help(argv[1:]):
+        print(usage)
+        return 0
+    try:
+        with _stderr_kept_on_success():
+            rclpy.init(args=argv)
+    except (RCLError, RuntimeError, ValueError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        print(f'{prog}: error: bad command-line arguments ({first}); see '
+              f'{prog} --help', file=sys.stderr)
+        return 2
+    node = None
+    try:
+        node = make()
+        node.serve()
+    except KneeseatError as err:
+        print(f'{prog}: error: {err}', file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RCLError:
+        # rclpy's SIGINT/SIGTERM handler shuts the context down; if that lands between two
+        # executor iterations, spin raises RCLError ('context is not valid') instead of
+        # ExternalShutdownException. That is a clean stop too; anything else is a bug.
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
