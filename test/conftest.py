@@ -50,6 +50,28 @@ def ros_env(domain_id: int, base: dict[str, str] | None = None) -> dict[str, str
     return env
 
 
+# Every long-running child a test starts (servers, replays); reaped after each test, so that
+# a test that fails before its own stop never leaves a node running on the machine.
+CHILDREN: list[subprocess.Popen[Any]] = []
+
+
+def track_child(proc: subprocess.Popen[Any]) -> subprocess.Popen[Any]:
+    """Register `proc` to be killed at the end of the current test if it still runs."""
+    CHILDREN.append(proc)
+    return proc
+
+
+@pytest.fixture(autouse=True)
+def reap_children() -> Iterator[None]:
+    """Kill and wait for any tracked child still running when a test ends."""
+    yield
+    while CHILDREN:
+        proc = CHILDREN.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
+
+
 @pytest.fixture
 def domain_id(monkeypatch: pytest.MonkeyPatch) -> int:
     """A fresh ROS_DOMAIN_ID, also set in this process's environment for rclpy.init."""

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 
+from conftest import track_child
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
@@ -296,8 +297,9 @@ WRITER = textwrap.dedent("""
 def _start_writer(tmp_path: Path, bag: Path) -> subprocess.Popen[str]:
     script = tmp_path / 'writer.py'
     script.write_text(WRITER)
-    proc = subprocess.Popen([sys.executable, str(script), str(bag)], env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = track_child(subprocess.Popen([sys.executable, str(script), str(bag)], env=_env(),
+                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                        text=True))
     assert proc.stdout is not None
     assert proc.stdout.readline().strip() == 'ready', proc.stderr.read() if proc.stderr else ''
     return proc

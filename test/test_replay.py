@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+from conftest import track_child
 from geometry_msgs.msg import PoseStamped
 from mcap.writer import Writer
 import pytest
@@ -136,10 +137,10 @@ def spin_until(executor: SingleThreadedExecutor, done: Callable[[], bool],
 
 
 def _replay(bag: Path, *extra: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, '-m', 'kneeseat_ros.replay', str(bag),
-                             '--wait-for-subscribers', '2', '--wait-timeout-s', '30', *extra],
-                            env=dict(os.environ), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return track_child(subprocess.Popen(
+        [sys.executable, '-m', 'kneeseat_ros.replay', str(bag), '--wait-for-subscribers', '2',
+         '--wait-timeout-s', '30', *extra],
+        env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
 
 
 def _subscribe(context: Context) -> tuple[SingleThreadedExecutor, dict[str, list]]:

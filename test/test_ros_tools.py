@@ -18,7 +18,7 @@ import signal
 import subprocess
 import sys
 
-from conftest import install_env, REPO, ros_env, write_synthetic_table
+from conftest import install_env, REPO, ros_env, track_child, write_synthetic_table
 import numpy as np
 import pytest
 from test_table_server import ServerProcess
@@ -99,10 +99,10 @@ def test_ros2_cli_drives_the_installed_node(ros2_cli: Path, colcon_install: Path
     try:
         # echo first (it waits for one message), then publish until echo has its answer
         with open(tmp_path / 'echo.out', 'wb') as out:
-            echo = subprocess.Popen(
+            echo = track_child(subprocess.Popen(
                 [str(ros2_cli / 'bin' / 'ros2'), 'topic', 'echo', '--once', '--no-daemon',
                  '/knee/tibia/pose', 'geometry_msgs/msg/PoseStamped'],
-                stdout=out, stderr=subprocess.STDOUT, env=env)
+                stdout=out, stderr=subprocess.STDOUT, env=env))
         pub = subprocess.Popen(
             [str(ros2_cli / 'bin' / 'ros2'), 'topic', 'pub', '--rate', '5',
              '/knee/joint_states', 'sensor_msgs/msg/JointState',

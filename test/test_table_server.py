@@ -16,7 +16,7 @@ import sys
 import time
 from typing import Any
 
-from conftest import (next_domain_id, REPO, ros_env, spin_until, synthetic_table,
+from conftest import (next_domain_id, REPO, ros_env, spin_until, synthetic_table, track_child,
                       write_synthetic_table)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
@@ -59,9 +59,9 @@ class ServerProcess:
         for p in params:
             args += ['-p', p]
         with open(self.out, 'wb') as out, open(self.err, 'wb') as err:
-            self.proc = subprocess.Popen(
+            self.proc = track_child(subprocess.Popen(
                 args, stdout=out, stderr=err,
-                env=env if exact_env and env is not None else ros_env(domain_id, env))
+                env=env if exact_env and env is not None else ros_env(domain_id, env)))
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
         """Send `sig` and wait; a node that does not exit is killed (and the test fails)."""
