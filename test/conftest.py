@@ -33,6 +33,18 @@ ROS2CLI_INSTALL = SHARED_TOOLS / 'ros2cli' / 'install'
 _DOMAIN_COUNTER = itertools.count()
 
 
+def fcl_object(mesh: Any) -> Any:
+    """A python-fcl collision object of `mesh` (a trimesh), built here and not by the
+    project, for the tests' own referees; at the identity until `setTransform`."""
+    import fcl
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(mesh.faces), len(mesh.vertices))     # (triangles, vertices)
+    bvh.addSubModel(np.asarray(mesh.vertices, dtype=np.float64),
+                    np.asarray(mesh.faces, dtype=np.int64))
+    bvh.endModel()
+    return fcl.CollisionObject(bvh, fcl.Transform())
+
+
 def next_domain_id() -> int:
     """A ROS_DOMAIN_ID in 1..100, different for each call in this process (pid-seeded)."""
     return (os.getpid() * 7 + 37 * next(_DOMAIN_COUNTER)) % 100 + 1

@@ -21,7 +21,7 @@ import pytest
 import trimesh
 import yaml
 
-from conftest import REPO, SHARED_DATA
+from conftest import fcl_object, REPO, SHARED_DATA
 from kneeseat_core.cli import main
 from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_about
 from kneeseat_core.kinematics import knee_kinematics, table_landmarks
@@ -78,13 +78,8 @@ class Probe:
 
     @staticmethod
     def _object(paths: list[Path]) -> fcl.CollisionObject:
-        mesh = trimesh.util.concatenate([trimesh.load_mesh(p, process=False) for p in paths])
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
-        bvh.addSubModel(np.asarray(mesh.vertices, dtype=np.float64),
-                        np.asarray(mesh.faces, dtype=np.int64))
-        bvh.endModel()
-        return fcl.CollisionObject(bvh, fcl.Transform())
+        return fcl_object(trimesh.util.concatenate([trimesh.load_mesh(p, process=False)
+                                                    for p in paths]))
 
     def collides(self, pose: np.ndarray) -> bool:
         self.moving.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from conftest import fcl_object
 from kneeseat_core import synth
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.typed import Floats, Pose
@@ -36,21 +37,12 @@ def knee() -> dict[str, trimesh.Trimesh]:
     return synth.default_knee()
 
 
-def _bvh_object(mesh: trimesh.Trimesh) -> fcl.CollisionObject:
-    bvh = fcl.BVHModel()
-    bvh.beginModel(len(mesh.vertices), len(mesh.faces))
-    bvh.addSubModel(np.asarray(mesh.vertices, dtype=np.float64),
-                    np.asarray(mesh.faces, dtype=np.int64))
-    bvh.endModel()
-    return fcl.CollisionObject(bvh, fcl.Transform())
-
-
 class Pair:
     """The femur (fixed, identity) and one moving body, queried with python-fcl."""
 
     def __init__(self, femur: trimesh.Trimesh, moving: trimesh.Trimesh) -> None:
-        self.femur = _bvh_object(femur)
-        self.moving = _bvh_object(moving)
+        self.femur = fcl_object(femur)
+        self.moving = fcl_object(moving)
         self.queries = 0
 
     def _place(self, femur_from_moving: Pose) -> None:

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from conftest import fcl_object
 from kneeseat_core.cli import main
 from kneeseat_core.continuity import continuity
 from kneeseat_core.geometry import matrix_from_quat, pose_from
@@ -65,18 +66,8 @@ class Probe:
     """python-fcl objects of our own: the fixed reference and one moving body."""
 
     def __init__(self, fixed: Path, moving: Path) -> None:
-        self.fixed = self._object(fixed)
-        self.moving = self._object(moving)
-
-    @staticmethod
-    def _object(path: Path) -> fcl.CollisionObject:
-        mesh = trimesh.load_mesh(path, process=False)
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(mesh.faces), len(mesh.vertices))     # (triangles, vertices)
-        bvh.addSubModel(np.asarray(mesh.vertices, dtype=np.float64),
-                        np.asarray(mesh.faces, dtype=np.int64))
-        bvh.endModel()
-        return fcl.CollisionObject(bvh, fcl.Transform())
+        self.fixed = fcl_object(trimesh.load_mesh(fixed, process=False))
+        self.moving = fcl_object(trimesh.load_mesh(moving, process=False))
 
     def collides(self, fixed_from_moving: Pose) -> bool:
         self.moving.setTransform(fcl.Transform(fixed_from_moving[:3, :3],
