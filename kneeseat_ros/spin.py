@@ -148,10 +148,9 @@ def _housekeeping(node: Node, executor: SingleThreadedExecutor, failed: list[Bas
         executor.spin()
     except (ExternalShutdownException, ShutdownException):
         pass
-    except RCLError:
-        if node.context.ok():
-            raise
     except BaseException as err:        # re-raised in the main thread
+        if isinstance(err, RCLError) and not node.context.ok():
+            return                      # the context went down under the executor
         failed.append(err)
         node.context.try_shutdown()
     finally:                            # wake the main thread: it stops too
