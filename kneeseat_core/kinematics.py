@@ -206,7 +206,8 @@ def knee_kinematics(table: PoseTable, marks: Landmarks, *,
     knee = _knee_angles(table, sign, angles_deg)
     varus = np.asarray(table.varus_rad, dtype=np.float64)
     v0 = float(varus[int(np.argmin(np.abs(varus)))])
-    looks = [table.interpolate(math.radians(a * sign), v0) for a in knee.tolist()]
+    looks = [table.interpolate(_on_grid(table.flexion_rad, math.radians(a * sign)), v0)
+             for a in knee.tolist()]
     names = list(table.bodies)
     values: dict[str, Floats] = {}
     flags: dict[str, Bools] = {}
@@ -251,6 +252,17 @@ def _knee_angles(table: PoseTable, sign: float, angles_deg: Sequence[float] | No
         raise ConfigError(f'knee flexion angles {bad.tolist() or "[]"} deg are outside the '
                           f'table ({lo:g} to {hi:g} deg of flexion); pick angles inside it')
     return knee
+
+
+def _on_grid(grid_rad: Floats, angle_rad: float) -> float:
+    """`angle_rad`, or the grid node it names (within `TOL.grid_match_deg`) exactly: an
+    angle that went through degrees differs from its node in the last bits, and
+    interpolation would then give the neighbour cell a weight (and its flags)."""
+    grid = np.asarray(grid_rad, dtype=np.float64)
+    node = int(np.argmin(np.abs(grid - angle_rad)))
+    if abs(grid[node] - angle_rad) <= math.radians(TOL.grid_match_deg):
+        return float(grid[node])
+    return angle_rad
 
 
 def _poses_of(looks: Sequence[Lookup], b: int) -> tuple[Floats, Floats]:

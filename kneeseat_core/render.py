@@ -96,7 +96,7 @@ def render_table(table: PoseTable, meshes: Mapping[str, trimesh.Trimesh], out: P
     simple = [_simplified(meshes[name], RENDER_MAX_FACES) for name in names]
     panels = []
     for angle_deg, node in angles:
-        poses, stale = _poses_at(table, angle_deg, node, v_col, grid_varus_deg[v_col])
+        poses, stale = _poses_at(table, angle_deg, node, v_col)
         polys, rgb = _project(simple, colours, poses, toward, screen, light)
         panels.append((angle_deg, polys, rgb, stale))
     n = len(panels)
@@ -233,8 +233,8 @@ def _simplified(mesh: trimesh.Trimesh, max_faces: int) -> tuple[Floats, Ints, bo
     return merged, new, closed                  # pragma: no cover - converges in 2-3 rounds
 
 
-def _poses_at(table: PoseTable, angle_deg: float, node: int | None, v_col: int,
-              varus_deg: float) -> tuple[list[Floats], list[str]]:
+def _poses_at(table: PoseTable, angle_deg: float, node: int | None, v_col: int
+              ) -> tuple[list[Floats], list[str]]:
     """(4, 4) reference_from_body for [reference, *bodies] and the non-converged bodies."""
     poses = [np.eye(4)]
     stale: list[str] = []
@@ -244,7 +244,7 @@ def _poses_at(table: PoseTable, angle_deg: float, node: int | None, v_col: int,
         positions = np.asarray(table.position_m, dtype=np.float64)[:, node, v_col]
         flags = ~converged[:, node, v_col]
     else:
-        lookup = table.interpolate(math.radians(angle_deg), math.radians(varus_deg))
+        lookup = table.interpolate(math.radians(angle_deg), float(table.varus_rad[v_col]))
         rotations = matrix_from_quat(lookup.orientation_xyzw)
         positions = np.asarray(lookup.position_m, dtype=np.float64)
         flags = np.asarray(lookup.nonconverged, dtype=bool)

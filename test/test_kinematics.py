@@ -52,8 +52,9 @@ def patella_pose(knee: float) -> tuple[np.ndarray, np.ndarray]:
     return rot, where - rot @ Q
 
 
-def synthetic(nonconverged_at: float | None = None) -> PoseTable:
-    flexion = np.radians(-KNEE_DEG[::-1])
+def synthetic(nonconverged_at: float | None = None,
+              knee_deg: np.ndarray = KNEE_DEG) -> PoseTable:
+    flexion = np.radians(-knee_deg[::-1])
     varus = np.radians([-5.0, 0.0, 5.0])
     pos = np.zeros((2, len(flexion), 3, 3))
     quat = np.zeros((2, len(flexion), 3, 4))
@@ -120,6 +121,24 @@ def test_pure_flexion_about_the_femoral_axis_is_no_translation() -> None:
     assert np.allclose(first[1], 0.0) and np.allclose(first[0], np.eye(3))
     np.testing.assert_allclose([kin.values[q][1] for q in ('tibia_ap', 'tibia_pd',
                                                            'tibia_ml')], 0.0, atol=1e-12)
+
+
+def test_grid_nodes_are_looked_up_on_the_node() -> None:
+    """On a 1-degree grid, -48 deg in radians does not come back bit for bit from degrees;
+    the node's row must still be the node's own cell, not a blend that carries a
+    non-converged neighbour's flag."""
+    fine = np.arange(0.0, 91.0)
+    node = -math.radians(48.0)
+    assert math.radians(math.degrees(node)) != node       # the case this guards
+    table = synthetic(knee_deg=fine)
+    converged = np.array(table.converged)
+    for neighbour in (47.0, 49.0):
+        converged[0, int(np.argmin(np.abs(np.asarray(table.flexion_rad)
+                                          + math.radians(neighbour)))), 1] = False
+    table = PoseTable(table.flexion_rad, table.varus_rad, table.position_m,
+                      table.orientation_xyzw, converged, table.iterations, table.metadata)
+    flags = knee_kinematics(table, MARKS).nonconverged['tibia']
+    assert flags.tolist() == [k in (47, 49) for k in range(91)]
 
 
 def test_angles_between_nodes_are_interpolated_and_flags_shown() -> None:
