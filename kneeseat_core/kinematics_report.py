@@ -16,11 +16,11 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
 
-from .errors import ConfigError, TableError
-from .files import write_bytes
+from .errors import ConfigError
 from .kinematics import KneeKinematics, QUANTITIES
+from .table_report import write_text
 
-__all__ = ['kinematics_rows', 'kinematics_markdown', 'write_kinematics_csv', 'write_text',
+__all__ = ['kinematics_rows', 'kinematics_markdown', 'write_kinematics_csv',
            'read_reference', 'plot_kinematics']
 
 
@@ -68,20 +68,6 @@ def write_kinematics_csv(kin: KneeKinematics, out: Path) -> Path:
     for row in rows:
         writer.writerow({k: (f'{v:.6g}' if isinstance(v, float) else v) for k, v in row.items()})
     return write_text(out, text.getvalue())
-
-
-def write_text(out: Path, text: str) -> Path:
-    """Write `text` to `out` atomically (temp file in the same directory, then rename).
-
-    Raises:
-        TableError: the file cannot be written (nothing is left behind).
-    """
-    try:
-        write_bytes(Path(out), text.encode())
-    except OSError as err:
-        raise TableError(f'cannot write {out}: {err.strerror or err}; check that the '
-                         'directory exists and is writable') from err
-    return Path(out)
 
 
 def read_reference(path: Path) -> list[dict[str, str | float]]:

@@ -1,7 +1,7 @@
 """Pictures of a pose table: its curves against flexion, its convergence map, a session.
 
 The public functions are headless (a `matplotlib.figure.Figure` of their own drawn on an
-Agg canvas; no pyplot, so no global state leaks between calls), both writing one PNG
+Agg canvas; no pyplot, so no global state leaks between calls), each writing one PNG
 atomically (`kneeseat_core.files.atomic_write`):
 
 - `plot_table`: per moving body, the three translations (mm, reference frame) and the
@@ -13,9 +13,10 @@ atomically (`kneeseat_core.files.atomic_write`):
   flexion) over the table's own curve at varus 0 (the demo's picture).
 The bones themselves are drawn by `kneeseat_core.render`.
 
-Each PNG carries tEXt chunks `kneeseat:nonconverged` (number of non-converged points marked,
-or of bodies drawn from non-converged cells) and `kneeseat:table` (the table name), so
-scripts and tests can read what was drawn without parsing pixels.
+The table's pictures (`plot_table`, `plot_convergence_map` and the renders) carry tEXt
+chunks `kneeseat:nonconverged` (number of non-converged points marked, or of bodies drawn
+from non-converged cells) and `kneeseat:table` (the table name), so scripts and tests can
+read what was drawn without parsing pixels.
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ from .files import atomic_write
 from .geometry import matrix_from_quat, TOL
 from .status import Status, STATUS_NAMES
 from .table import PoseTable
+from .table_format import mesh_entries
 from .typed import Bools, Floats
 
 __all__ = ['DPI', 'PLOT_PANEL_IN', 'PLOT_EXTRA_IN', 'SESSION_SIZE_PX', 'MARKER_RGB',
@@ -379,11 +381,8 @@ def _varus_columns(grid_deg: Floats, requested: Sequence[float] | None
 
 
 def table_name(table: PoseTable) -> str:
-    """The table's file name if the metadata has it, else its name, else 'pose table'."""
+    """The table's name (its metadata's, else its config's), else 'pose table'."""
     meta = table.metadata
-    for key in ('file', 'path', 'table'):
-        if isinstance(meta.get(key), str) and meta[key]:
-            return Path(meta[key]).name
     config = meta.get('config')
     for source in (meta, config if isinstance(config, dict) else {}):
         if isinstance(source.get('name'), str) and source['name']:
@@ -392,9 +391,10 @@ def table_name(table: PoseTable) -> str:
 
 
 def _default_title(table: PoseTable) -> str:
-    """Table name, then each mesh with the first 8 hex of its SHA-256."""
+    """Table name, then each body with the first 8 hex of each of its meshes' SHA-256."""
     meta = table.metadata
     entries = [meta.get('reference', {}), *meta.get('bodies', [])]
-    hashes = ', '.join(f'{e.get("name", "?")} {str(e.get("mesh_sha256") or "?")[:8]}'
+    hashes = ', '.join(f'{e.get("name", "?")} '
+                       + '+'.join((sha or '?')[:8] for _, sha in mesh_entries(e))
                        for e in entries)
     return f'{table_name(table)}\nmeshes: {hashes}'

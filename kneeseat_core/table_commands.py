@@ -9,7 +9,7 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any, TYPE_CHECKING
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -63,30 +63,17 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _display_paths(entry: dict[str, Any], display: bool) -> list[str]:
-    """A metadata entry's display meshes when asked and recorded, else its collision meshes.
-
-    Reads tables written before multi-mesh bodies (`mesh`/`display_mesh` only) too.
-    """
-    from .table_format import mesh_entries
-    if display:
-        listed = [m['path'] for m in entry.get('display_meshes') or [] if isinstance(m, dict)]
-        if listed:
-            return listed
-        if entry.get('display_mesh'):
-            return [entry['display_mesh']]
-    return [path for path, _ in mesh_entries(entry)]
-
-
 def _table_meshes(table: PoseTable, display: bool) -> dict[str, trimesh.Trimesh]:
     """Meshes named in a table's metadata, one (combined) mesh per body.
 
     A body with several meshes (e.g. a tibia's bone and menisci) is drawn as their union.
     """
     from .meshes import load_meshes
+    from .table_format import display_paths, mesh_entries
     meta = table.metadata
     units = meta.get('config', {}).get('units', 'm')
-    return {entry['name']: load_meshes(_display_paths(entry, display), units)
+    return {entry['name']: load_meshes(display_paths(entry) if display
+                                       else [path for path, _ in mesh_entries(entry)], units)
             for entry in (meta['reference'], *meta['bodies'])}
 
 
@@ -113,7 +100,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_kinematics(args: argparse.Namespace) -> int:
     from .kinematics import DEFAULT_ANGLES_DEG, knee_kinematics, table_landmarks
     from .kinematics_report import (kinematics_markdown, plot_kinematics, read_reference,
-                                    write_kinematics_csv, write_text)
+                                    write_kinematics_csv)
+    from .table_report import write_text
     table = read_table(args.table)
     names = dict(tibia=args.tibia, patella=args.patella)
     marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,

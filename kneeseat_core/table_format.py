@@ -33,6 +33,7 @@ keeps the table valid.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 import hashlib
 import math
 from typing import Any
@@ -44,7 +45,7 @@ from .geometry import KneeAxes, TOL
 
 __all__ = ['SCHEMA', 'SUPPORTED_SCHEMAS', 'ARRAY_NAMES', 'REQUIRED_KEYS', 'REBUILD',
            'canonical', 'hash_arrays', 'check_arrays', 'check_metadata', 'check_schema',
-           'mesh_entries']
+           'mesh_entries', 'display_paths']
 
 SCHEMA = 'kneeseat.table/1'
 SUPPORTED_SCHEMAS = (SCHEMA,)
@@ -163,7 +164,7 @@ def check_schema(meta: Any, where: str) -> None:
                          'kneeseat or use the kneeseat version that wrote it')
 
 
-def mesh_entries(entry: dict[str, Any]) -> list[tuple[str, str]]:
+def mesh_entries(entry: Mapping[str, Any]) -> list[tuple[str, str]]:
     """(path, sha256) of every collision mesh of a metadata body or reference entry.
 
     Tables written before multi-mesh bodies have only `mesh`/`mesh_sha256`.
@@ -173,3 +174,18 @@ def mesh_entries(entry: dict[str, Any]) -> list[tuple[str, str]]:
         return [(str(m.get('path', '?')), str(m.get('sha256') or '')) for m in listed
                 if isinstance(m, dict)]
     return [(str(entry.get('mesh', '?')), str(entry.get('mesh_sha256') or ''))]
+
+
+def display_paths(entry: Mapping[str, Any]) -> list[str]:
+    """The mesh files to draw for a metadata body or reference entry, as recorded: its
+    display meshes, else its collision meshes; [] when the entry names none.
+
+    Reads tables written before multi-mesh bodies (`display_mesh`/`mesh` only) too.
+    """
+    listed = [str(m['path']) for m in entry.get('display_meshes') or []
+              if isinstance(m, Mapping) and m.get('path')]
+    if listed:
+        return listed
+    if entry.get('display_mesh'):
+        return [str(entry['display_mesh'])]
+    return [path for path, _ in mesh_entries(entry) if path != '?']

@@ -20,7 +20,7 @@ from .table import Lookup, PoseTable
 from .table_format import mesh_entries
 from .typed import Floats
 
-__all__ = ['describe', 'status_map', 'lookup_json', 'export_csv', 'CSV_COLUMNS']
+__all__ = ['describe', 'status_map', 'lookup_json', 'export_csv', 'write_text', 'CSV_COLUMNS']
 
 CSV_COLUMNS = ('body', 'flexion_deg', 'varus_deg', 'x_m', 'y_m', 'z_m', 'flexion_rot_deg',
                'varus_rot_deg', 'long_rot_deg', 'converged', 'iterations')
@@ -203,8 +203,19 @@ def export_csv(table: PoseTable, path: Path) -> None:
                                  *(f'{x:.12g}' for x in pos[b, i, j].tolist()),
                                  *(f'{x:.12g}' for x in angles[b, i, j].tolist()),
                                  'true' if conv[b, i, j] else 'false', int(iters[b, i, j])])
+    write_text(path, text.getvalue(), 'CSV ')
+
+
+def write_text(out: Path, text: str, what: str = '') -> Path:
+    """Write a report's `text` to `out` atomically (`kneeseat_core.files.write_bytes`);
+    `what` names the kind of file in the error ('CSV ').
+
+    Raises:
+        TableError: the file cannot be written (nothing is left behind).
+    """
     try:
-        write_bytes(path, text.getvalue().encode())
+        write_bytes(Path(out), text.encode())
     except OSError as err:
-        raise TableError(f'cannot write CSV {path}: {err.strerror or err}; check that the '
+        raise TableError(f'cannot write {what}{out}: {err.strerror or err}; check that the '
                          'directory exists, is writable and has free space') from err
+    return Path(out)

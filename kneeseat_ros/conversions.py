@@ -30,6 +30,7 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
 
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, TOL
+from kneeseat_core.table_format import display_paths
 from kneeseat_core.typed import Floats, Pose as PoseArray
 from .errors import BadInputError
 
@@ -275,14 +276,8 @@ def display_mesh_paths(entry: Mapping[str, Any], table_dir: Path) -> tuple[str, 
     else `mesh`: tables written before multi-mesh bodies have only the singular keys).
     Relative paths are taken from `table_dir`.
     """
-    def paths(key_list: str, key_one: str) -> list[str]:
-        listed = [str(m['path']) for m in entry.get(key_list) or []
-                  if isinstance(m, Mapping) and m.get('path')]
-        return listed or ([str(entry[key_one])] if entry.get(key_one) else [])
-
-    names = paths('display_meshes', 'display_mesh') or paths('meshes', 'mesh')
     out = []
-    for name in names:
+    for name in display_paths(entry):
         path = Path(str(name)).expanduser()
         out.append(str(path if path.is_absolute() else (table_dir / path).resolve()))
     return tuple(out)
