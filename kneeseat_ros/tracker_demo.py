@@ -27,7 +27,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 import functools
 from pathlib import Path
-import signal
 import subprocess
 import sys
 import time
@@ -46,7 +45,8 @@ from kneeseat_core.table import PoseTable
 from kneeseat_core.table_io import read_table
 from kneeseat_core.typed import Floats, Poses
 from kneeseat_ros import topics
-from kneeseat_ros.children import child_env
+from kneeseat_ros.children import child_env, stop_child
+from kneeseat_ros.conversions import display_mesh_paths
 
 __all__ = ['leg_motion', 'example_registration', 'registration_yaml', 'expected_world',
            'pose_matrix', 'main', 'MAX_ERROR']
@@ -172,12 +172,11 @@ def _prepare(args: argparse.Namespace) -> _Walk:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     if args.table is not None:
-        table_path = args.table
+        table_path, table = args.table, read_table(args.table)
     else:
         from kneeseat_ros.demo_table import prepare_table
-        table_path, _, why = prepare_table(out, 2.0, 2)
+        table_path, table, why = prepare_table(out, 2.0, 2)
         print(f'tracker_demo: default knee table {table_path}: {why}')
-    table = read_table(table_path)
     reg_f, reg_t = example_registration()
     registration = out / 'registration.yaml'
     registration.write_text(registration_yaml(reg_f, reg_t))
@@ -300,15 +299,16 @@ def _run(args: argparse.Namespace) -> int:
             [str(Path(sys.prefix) / 'bin' / 'table_server'), '--ros-args', '-p',
              f'table:={walk.table_path}', '-p', f'tracker.registration:={walk.registration}'],
             stdout=stream, stderr=subprocess.STDOUT, env=env)
-    tracker = _Tracker(walk, env, server, log)
+    tracker: _Tracker | None = None
     try:
+        tracker = _Tracker(walk, env, server, log)
         tracker.warm_up()
         stamps = tracker.session(args.samples, args.rate_hz)
         pos_err, rot_err, worlds = _compare(walk, tracker.answers, stamps)
     finally:
-        tracker.close()
-        server.send_signal(signal.SIGINT)
-        rc = server.wait(timeout=15)
+        if tracker is not None:
+            tracker.close()
+        rc = stop_child(server, 15.0)
     png = plot_world(worlds, walk.names, args.out / 'tracker_world.png',
                      _mesh_points(walk.table, walk.table_path))
     print(f'tracker_demo: {args.samples} pairs at {args.rate_hz:g} Hz through table_server '
@@ -326,18 +326,16 @@ def _mesh_points(table: PoseTable, table_path: Path,
     a table whose meshes are not on this machine is drawn with frames only.
     """
     from kneeseat_core.errors import MeshError
-    from kneeseat_core.meshes import load_mesh
+    from kneeseat_core.meshes import load_meshes
     meta = table.metadata
     units = meta.get('config', {}).get('units', 'm')
     points = []
     for entry in (meta['reference'], *meta['bodies']):
-        name = entry.get('display_mesh') or entry.get('mesh')
-        if not name:
+        paths = display_mesh_paths(entry, table_path.parent)
+        if not paths:
             return None
-        path = Path(str(name))
-        path = path if path.is_absolute() else table_path.parent / path
         try:
-            vertices = np.asarray(load_mesh(path, units).vertices)
+            vertices = np.asarray(load_meshes(paths, units).vertices)
         except MeshError:
             return None
         step = max(len(vertices) // count, 1)
