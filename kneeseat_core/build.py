@@ -26,7 +26,6 @@ from .status import STATUS_NAMES
 from .sweep import default_workers, process_executor, sweep, SweepResult
 from .table import PoseTable
 from .table_io import write_table
-from .typed import Floats
 
 if TYPE_CHECKING:
     from .args import Subcommands
@@ -131,8 +130,6 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
 def _backed_out(config: KneeConfig, result: SweepResult) -> dict[str, Any]:
     """Per body: cells whose start was in collision and backed out along -push, and how far."""
     out: dict[str, Any] = {}
-    if result.backed_out_m is None:
-        return out
     for b, spec in enumerate(config.bodies):
         moved = result.backed_out_m[b][result.backed_out_m[b] > 0.0]
         out[spec.name] = {'cells': int(moved.size),
@@ -209,13 +206,12 @@ def _cmd_build(args: argparse.Namespace) -> int:
         if args.mesh_dir is not None:
             mesh_dir = args.mesh_dir
         overrides: dict[str, Any] = {}
-        if args.flexion_grid is not None or args.varus_grid is not None:
-            base = load_config(cfg_path, mesh_dir)
-            grid = {'flexion_deg': args.flexion_grid or _degrees_spec(base.flexion_rad),
-                    'varus_deg': args.varus_grid or _degrees_spec(base.varus_rad)}
+        given = (('flexion_deg', args.flexion_grid), ('varus_deg', args.varus_grid))
+        grid = {key: value for key, value in given if value is not None}
+        if grid:
             overrides['grid'] = grid
         if args.method is not None:
-            overrides['settle'] = {**(_raw_settle(cfg_path)), 'method': args.method}
+            overrides['settle'] = {'method': args.method}
         loaded.append(load_config(cfg_path, mesh_dir, overrides or None))
     for out in outs:
         if not out.parent.is_dir():
@@ -239,20 +235,6 @@ def _cmd_build(args: argparse.Namespace) -> int:
               f'{100 * totals["converged"] / max(totals["cells"], 1):.1f}% converged, '
               f'{totals["wall_s"]:.1f} s wall')
     return 0
-
-
-def _raw_settle(path: Path) -> dict[str, Any]:
-    import yaml
-    data = yaml.safe_load(Path(path).read_text()) or {}
-    return dict(data.get('settle') or {})
-
-
-def _degrees_spec(values_rad: Floats) -> list[float]:
-    """[start, stop, step] in degrees for an ascending, uniform grid."""
-    deg = [math.degrees(v) for v in values_rad]
-    if len(deg) == 1:
-        return [deg[0], deg[0], 1.0]
-    return [deg[0], deg[-1], (deg[-1] - deg[0]) / (len(deg) - 1)]
 
 
 def _grid_arg(text: str) -> list[float]:

@@ -100,8 +100,13 @@ class KneeConfig:
 
     def attitude(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3, 3) attitude of `body` at a grid cell (module docstring)."""
-        return (rotation_about(self.axes.flexion, body.flexion_fraction * flexion_rad)
-                @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
+        return self._turn(body.flexion_fraction, body.varus_fraction, flexion_rad, varus_rad)
+
+    def _turn(self, flexion_fraction: float, varus_fraction: float, flexion_rad: float,
+              varus_rad: float) -> Floats:
+        """(3, 3) the turn by these fractions of flexion and varus about the knee's axes."""
+        return (rotation_about(self.axes.flexion, flexion_fraction * flexion_rad)
+                @ rotation_about(self.axes.varus, varus_fraction * varus_rad))
 
     def attitudes(self) -> Floats:
         """(B, F, V, 3, 3) every body's attitude at every grid cell."""
@@ -113,10 +118,9 @@ class KneeConfig:
 
         The attitude, unless the body has a `push_flexion_fraction` (module docstring).
         """
-        if body.push_flexion_fraction is None:
-            return self.attitude(body, flexion_rad, varus_rad)
-        return (rotation_about(self.axes.flexion, body.push_flexion_fraction * flexion_rad)
-                @ rotation_about(self.axes.varus, body.varus_fraction * varus_rad))
+        fraction = body.flexion_fraction if body.push_flexion_fraction is None \
+            else body.push_flexion_fraction
+        return self._turn(fraction, body.varus_fraction, flexion_rad, varus_rad)
 
     def push(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3,) unit push direction of `body` at a grid cell, reference frame."""
@@ -358,7 +362,8 @@ def load_config(path: Path, mesh_dir: Path | None = None,
     Args:
         path: YAML file.
         mesh_dir: overrides the config's `mesh_dir`.
-        overrides: top-level sections replaced before validation (e.g. {'grid': {...}}).
+        overrides: top-level sections merged in before validation, key by key within a
+            section (e.g. {'grid': {'flexion_deg': [...]}} keeps the file's varus grid).
     Raises:
         ConfigError: unreadable YAML, unknown or missing keys, missing meshes, zero-length
             or non-orthogonal axes, bad grid or settle values; the message names the key.
@@ -371,7 +376,11 @@ def load_config(path: Path, mesh_dir: Path | None = None,
     except (OSError, yaml.YAMLError) as err:
         raise ConfigError(f'{path}: not readable YAML ({str(err).splitlines()[0]})') from None
     if overrides:
-        data = {**(data or {}), **overrides}
+        data = dict(data or {})
+        for key, value in overrides.items():
+            section = data.get(key)
+            both = isinstance(value, dict) and isinstance(section, dict)
+            data[key] = {**section, **value} if both else value
     try:
         return _parse(data, path, mesh_dir)
     except ConfigError as err:

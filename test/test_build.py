@@ -167,3 +167,17 @@ def test_verify_says_where_the_meshes_went(built: tuple[Path, Path], tmp_path: P
     lines = captured.err.splitlines()
     assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
     assert "femur.stl: the table's mesh is not there; pass --mesh-dir DIR" in lines[0]
+
+
+def test_one_grid_override_keeps_the_other_axis_of_the_config(tmp_path: Path) -> None:
+    """`--flexion-grid` alone: the varus grid is the config's, bit for bit (it used to be
+    rebuilt from degrees, one unit in the last place off), and the settle section stays."""
+    from kneeseat_core.knee import load_config
+    config = materialise_default_knee(tmp_path)
+    base = load_config(config)
+    only_flexion = load_config(config, overrides={'grid': {'flexion_deg': [0.0, -90.0, 30.0]}})
+    assert np.array_equal(only_flexion.varus_rad, base.varus_rad)
+    assert np.allclose(np.degrees(only_flexion.flexion_rad), [-90.0, -60.0, -30.0, 0.0])
+    config.write_text(config.read_text().replace('max_iterations: 500', 'max_iterations: 321'))
+    patent = load_config(config, overrides={'settle': {'method': 'patent'}})
+    assert patent.settle.method == 'patent' and patent.settle.max_iterations == 321
