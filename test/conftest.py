@@ -45,6 +45,14 @@ def fcl_object(mesh: Any) -> Any:
     return fcl.CollisionObject(bvh, fcl.Transform())
 
 
+def fcl_collides(moving: Any, fixed: Any, pose: Any) -> bool:
+    """True if the python-fcl object `moving`, placed at `pose` (4x4, in `fixed`'s frame),
+    overlaps `fixed`: a boolean query of the tests' own; leaves `moving` at `pose`."""
+    import fcl
+    moving.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))
+    return fcl.collide(moving, fixed, fcl.CollisionRequest(), fcl.CollisionResult()) > 0
+
+
 def next_domain_id() -> int:
     """A ROS_DOMAIN_ID in 1..100, different for each call in this process (pid-seeded)."""
     return (os.getpid() * 7 + 37 * next(_DOMAIN_COUNTER)) % 100 + 1
@@ -82,6 +90,13 @@ def reap_children() -> Iterator[None]:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=30)
+
+
+@pytest.fixture
+def ament_prefix(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ROS wheels keep their ament index (and .msg files) in the venv prefix."""
+    paths = os.environ.get('AMENT_PREFIX_PATH', '')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(filter(None, [sys.prefix, paths])))
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ import struct
 import subprocess
 import sys
 
-from conftest import next_domain_id, ros_env
+from conftest import next_domain_id, REPO, ros_env, SHARED_DATA
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader
@@ -30,7 +30,6 @@ from kneeseat_ros.demo_table import demo_bag, prepare_table
 from kneeseat_ros.replay import load_messages
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / 'data' / 'angle_bags' / 'gait_demo'
 STEP_DEG = 10.0          # 10 x 3 grid: seconds to build
 DEMO_TIMEOUT_S = 300.0
@@ -222,7 +221,7 @@ def test_natural_knee_without_its_meshes_is_one_line_and_exit_2(
     assert not list((tmp_path / 'out').glob('*.npz'))
 
 
-NATURAL_DATA = REPO.parent / 'shared' / 'data' / 'natural_knee'
+NATURAL_DATA = SHARED_DATA / 'natural_knee'
 
 
 @pytest.mark.slow

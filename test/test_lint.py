@@ -1,11 +1,10 @@
 """The code is linted as ament_flake8 would (settings in .flake8), and the core stays ROS-free."""
 from __future__ import annotations
 
-from pathlib import Path
 import subprocess
 import sys
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REPO
 
 
 def test_flake8_is_clean() -> None:

@@ -12,19 +12,13 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import get_typestore, Stores
 
+from conftest import REPO
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, rotation_angle
 from kneeseat_ros.make_bag import DEFAULT_START_NS, gait, main, sweep
 
-ROOT = Path(__file__).resolve().parents[1]
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 TKA_AXES = KneeAxes.from_vectors([0, 0, 1], [1, 0, 0], [0, 1, 0])
-
-
-@pytest.fixture(autouse=True)
-def ament_prefix(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The ROS wheels keep their ament index (and .msg files) in the venv prefix."""
-    paths = os.environ.get('AMENT_PREFIX_PATH', '')
-    monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(filter(None, [sys.prefix, paths])))
+pytestmark = pytest.mark.usefixtures('ament_prefix')     # conftest: venv on the ament path
 
 
 def read_poses(bag: Path) -> list[tuple[str, int, object]]:
@@ -160,11 +154,11 @@ def test_table_axes(tmp_path: Path) -> None:
 
 
 def test_demo_bag_regenerates_byte_identically(tmp_path: Path) -> None:
-    shipped = ROOT / 'data' / 'angle_bags' / 'gait_demo'
+    shipped = REPO / 'data' / 'angle_bags' / 'gait_demo'
     out = tmp_path / 'gait_demo'
     env = dict(os.environ, AMENT_PREFIX_PATH=os.pathsep.join(
         filter(None, [sys.prefix, os.environ.get('AMENT_PREFIX_PATH', '')])))
-    done = subprocess.run([str(ROOT / 'scripts' / 'make_demo_bag'), str(out)], env=env,
+    done = subprocess.run([str(REPO / 'scripts' / 'make_demo_bag'), str(out)], env=env,
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     names = sorted(p.name for p in shipped.iterdir())

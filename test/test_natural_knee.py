@@ -21,7 +21,7 @@ import pytest
 import trimesh
 import yaml
 
-from conftest import fcl_object, REPO, SHARED_DATA
+from conftest import fcl_collides, fcl_object, REPO, SHARED_DATA
 from kneeseat_core.cli import main
 from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_about
 from kneeseat_core.kinematics import knee_kinematics, table_landmarks
@@ -82,9 +82,7 @@ class Probe:
                                                     for p in paths]))
 
     def collides(self, pose: np.ndarray) -> bool:
-        self.moving.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))
-        return fcl.collide(self.moving, self.fixed, fcl.CollisionRequest(),
-                           fcl.CollisionResult()) > 0
+        return fcl_collides(self.moving, self.fixed, pose)
 
 
 BUILT_FILE: dict[str, Path] = {}

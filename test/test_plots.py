@@ -11,6 +11,7 @@ from PIL import Image
 import pytest
 import trimesh
 
+from conftest import SHARED_DATA
 from kneeseat_core.errors import ConfigError, KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PANEL_IN,
@@ -230,7 +231,7 @@ def test_render_of_large_meshes_is_quick(tmp_path: Path) -> None:
     assert time.perf_counter() - started < 10.0
 
 
-DM = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'tka_dm'
+DM = SHARED_DATA / 'tka_dm'
 
 
 @pytest.mark.slow

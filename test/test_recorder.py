@@ -9,7 +9,7 @@ import subprocess
 import sys
 import textwrap
 
-from conftest import track_child
+from conftest import REPO, track_child
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
@@ -31,13 +31,7 @@ from kneeseat_ros.recovery import read_readable, recover
 T0 = 1_700_000_000_000_000_000
 SHA = 'ab' * 32
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-
-
-@pytest.fixture(autouse=True)
-def ament_prefix(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The ROS wheels keep their ament index (and .msg files) in the venv prefix."""
-    paths = os.environ.get('AMENT_PREFIX_PATH', '')
-    monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(filter(None, [sys.prefix, paths])))
+pytestmark = pytest.mark.usefixtures('ament_prefix')     # conftest: venv on the ament path
 
 
 def _env() -> dict[str, str]:
@@ -45,7 +39,7 @@ def _env() -> dict[str, str]:
     env['AMENT_PREFIX_PATH'] = os.pathsep.join(
         filter(None, [sys.prefix, os.environ.get('AMENT_PREFIX_PATH', '')]))
     env['PYTHONPATH'] = os.pathsep.join(
-        filter(None, [str(Path(__file__).resolve().parents[1]), os.environ.get('PYTHONPATH')]))
+        filter(None, [str(REPO), os.environ.get('PYTHONPATH')]))
     return env
 
 

@@ -1,14 +1,13 @@
 """replay: clear errors for bad bags; a real replay over Fast DDS with scaled timing."""
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
 import os
 from pathlib import Path
 import subprocess
 import sys
 import time
 
-from conftest import track_child
+from conftest import spin_until, track_child
 from geometry_msgs.msg import PoseStamped
 from mcap.writer import Writer
 import pytest
@@ -21,16 +20,9 @@ from kneeseat_ros.make_bag import main as make_bag
 from kneeseat_ros.recorder import BagRecorder
 from kneeseat_ros.replay import load_messages, main
 
-DOMAIN_ID = 100 + os.getpid() % 100
-
-
-@pytest.fixture(autouse=True)
-def ros_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Own domain, loopback discovery, and the venv prefix on the ament path."""
-    paths = os.environ.get('AMENT_PREFIX_PATH', '')
-    monkeypatch.setenv('AMENT_PREFIX_PATH', os.pathsep.join(filter(None, [sys.prefix, paths])))
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(DOMAIN_ID))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+# conftest.domain_id: own domain, loopback discovery and the venv prefix on the ament path,
+# set in os.environ for every test (the replay subprocess inherits it)
+pytestmark = pytest.mark.usefixtures('domain_id')
 
 
 @pytest.fixture
@@ -118,22 +110,6 @@ def test_load_messages_from_directory_and_single_file(tmp_path: Path) -> None:
     assert [m.log_time_ns for m in inputs] == [10**9 + i * 10**8 for i in range(20)]
     single = load_messages(rec.paths[1], None)
     assert len(single) == 10 and {m.topic for m in single} == {'/knee/pose', '/knee/tibia/pose'}
-
-
-@pytest.fixture
-def context() -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-def spin_until(executor: SingleThreadedExecutor, done: Callable[[], bool],
-               timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not done():
-        assert time.monotonic() < deadline, 'condition not met before deadline'
-        executor.spin_once(timeout_sec=0.05)
 
 
 def _replay(bag: Path, *extra: str) -> subprocess.Popen[str]:

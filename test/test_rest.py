@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from conftest import REPO
 from kneeseat_core.cli import main
 from kneeseat_core.collision import RigidBody
 from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix, rotation_about
@@ -36,7 +37,6 @@ POSITION_TOL_M = 2.0 * RESOLUTION_M + 0.05e-3
 ROTATION_RES = math.radians(0.1)
 SPIN_TOL = 1.5 * ROTATION_RES
 CASES = list(itertools.product(sc.SHALLOW_SCENES, sc.VARIANTS))
-REPO = Path(__file__).resolve().parents[1]
 
 
 def params(var: sc.Variant, **kwargs: object) -> SettleParams:

@@ -103,11 +103,11 @@ def test_ros2_cli_drives_the_installed_node(ros2_cli: Path, colcon_install: Path
                 [str(ros2_cli / 'bin' / 'ros2'), 'topic', 'echo', '--once', '--no-daemon',
                  '/knee/tibia/pose', 'geometry_msgs/msg/PoseStamped'],
                 stdout=out, stderr=subprocess.STDOUT, env=env))
-        pub = subprocess.Popen(
+        pub = track_child(subprocess.Popen(
             [str(ros2_cli / 'bin' / 'ros2'), 'topic', 'pub', '--rate', '5',
              '/knee/joint_states', 'sensor_msgs/msg/JointState',
              '{name: [knee_flexion, knee_varus], position: [-0.7, 0.05]}'],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
         assert echo.wait(timeout=60) == 0, (tmp_path / 'echo.out').read_text()
         answer = yaml.safe_load((tmp_path / 'echo.out').read_text().split('---')[0])
         want = table.interpolate(-0.7, 0.05)
@@ -126,11 +126,18 @@ def test_ros2_cli_drives_the_installed_node(ros2_cli: Path, colcon_install: Path
         assert got.returncode == 0 and 'success=True' in got.stdout, got.stdout + got.stderr
         assert 'serving' in got.stdout and table.sha256[:12] in got.stdout
     finally:
-        if pub is not None:
-            pub.send_signal(signal.SIGINT)
-            pub.wait(timeout=15)
-        os.killpg(run.pid, signal.SIGINT)       # ros2 run and the node it started
-        rc = run.wait(timeout=15)
+        try:
+            if pub is not None:
+                pub.send_signal(signal.SIGINT)
+                pub.wait(timeout=15)
+        finally:
+            os.killpg(run.pid, signal.SIGINT)       # ros2 run and the node it started
+            try:
+                rc = run.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait()
+                raise
     text = log.read_text()
     assert rc == 0 and 'Traceback' not in text, text
     assert 'serving' in text

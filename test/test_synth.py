@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from conftest import fcl_object
+from conftest import fcl_collides, fcl_object
 from kneeseat_core import synth
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.typed import Floats, Pose
@@ -50,10 +50,8 @@ class Pair:
                                                femur_from_moving[:3, 3]))
 
     def collides(self, femur_from_moving: Pose) -> bool:
-        self._place(femur_from_moving)
         self.queries += 1
-        return fcl.collide(self.moving, self.femur, fcl.CollisionRequest(),
-                           fcl.CollisionResult()) > 0
+        return fcl_collides(self.moving, self.femur, femur_from_moving)
 
     def contacts(self, femur_from_moving: Pose) -> Floats:
         """(n, 3) contact points (m, femur frame) at this pose."""

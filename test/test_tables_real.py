@@ -17,12 +17,11 @@ import json
 import math
 from pathlib import Path
 
-import fcl
 import numpy as np
 import pytest
 import trimesh
 
-from conftest import fcl_object
+from conftest import fcl_collides, fcl_object, REPO, SHARED_DATA
 from kneeseat_core.cli import main
 from kneeseat_core.continuity import continuity
 from kneeseat_core.geometry import matrix_from_quat, pose_from
@@ -33,8 +32,7 @@ from kneeseat_core.table_io import read_table
 from kneeseat_core.table_report import status_map
 from kneeseat_core.typed import Floats, Pose
 
-REPO = Path(__file__).resolve().parents[1]
-TKA = REPO.parent / 'shared' / 'data' / 'tka_dm'
+TKA = SHARED_DATA / 'tka_dm'
 CONFIG = REPO / 'config' / 'tka_dm.yaml'
 RESOLUTION_M = 1e-4
 BISECT_TOL_M = 2e-6         # resolution of the penetration estimate
@@ -70,10 +68,7 @@ class Probe:
         self.moving = fcl_object(trimesh.load_mesh(moving, process=False))
 
     def collides(self, fixed_from_moving: Pose) -> bool:
-        self.moving.setTransform(fcl.Transform(fixed_from_moving[:3, :3],
-                                               fixed_from_moving[:3, 3]))
-        return fcl.collide(self.moving, self.fixed, fcl.CollisionRequest(),
-                           fcl.CollisionResult()) > 0
+        return fcl_collides(self.moving, self.fixed, fixed_from_moving)
 
     def penetration(self, pose: Pose, push: Floats, limit_m: float) -> float:
         """How far (m) `pose` must move back along -push to be free; 0 if free already.

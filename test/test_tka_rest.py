@@ -10,19 +10,20 @@ a pose that is not at rest (the first contact straight up from the start).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
+from conftest import fcl_collides, fcl_object, SHARED_DATA
+import fcl
 import numpy as np
 import pytest
 import trimesh
 
-from kneeseat_core.collision import CollisionPair, RigidBody
+from kneeseat_core.collision import RigidBody
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.meshes import load_mesh
 from kneeseat_core.referee import Referee
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 
-TKA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data' / 'tka_dm'
+TKA = SHARED_DATA / 'tka_dm'
 RESOLUTION_M = 1e-4
 PUSH = np.array([0.0, 1.0, 0.0])            # +Y: the insert rises into the femur
 
@@ -53,11 +54,13 @@ def knee() -> tuple[trimesh.Trimesh, trimesh.Trimesh, RigidBody, RigidBody]:
 
 
 @pytest.fixture(scope='module')
-def settled(knee: tuple) -> tuple[CollisionPair, SettleResult]:
-    """The femoral component and insert as a pair, and the default settle's result."""
-    _, _, femoral, insert = knee
+def settled(knee: tuple) -> tuple[tuple[fcl.CollisionObject, fcl.CollisionObject],
+                                  SettleResult]:
+    """The insert (moving) and femoral component (fixed) as the tests' own python-fcl
+    objects, and the default settle's result."""
+    femoral_mesh, insert_mesh, femoral, insert = knee
     result = settle(femoral, insert, start_pose(insert), SettleParams(push=tuple(PUSH)))
-    return CollisionPair(femoral, insert), result
+    return (fcl_object(insert_mesh), fcl_object(femoral_mesh)), result
 
 
 def test_default_settle_converges_on_the_knee(settled: tuple) -> None:
@@ -67,11 +70,12 @@ def test_default_settle_converges_on_the_knee(settled: tuple) -> None:
 
 
 def test_end_pose_touches_without_penetrating(settled: tuple) -> None:
-    pair, result = settled
-    assert not pair.collides(result.pose), 'the end pose is in collision'
+    (moving, fixed), result = settled
+    assert not fcl_collides(moving, fixed, result.pose), 'the end pose is in collision'
     ahead = result.pose.copy()
     ahead[:3, 3] += RESOLUTION_M * PUSH
-    assert pair.collides(ahead), 'the end pose can still rise a resolution along the push'
+    assert fcl_collides(moving, fixed, ahead), (
+        'the end pose can still rise a resolution along the push')
 
 
 def test_ten_settles_from_different_starts_are_at_rest(knee: tuple) -> None:

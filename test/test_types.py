@@ -5,7 +5,7 @@ from pathlib import Path
 import subprocess
 import sys
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REPO
 
 
 def mypy(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
