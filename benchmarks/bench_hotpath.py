@@ -23,7 +23,7 @@ import tempfile
 import time
 from typing import Any, Callable
 
-from machine import describe_machine
+from machine import call_times_us, describe_machine
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'test'))   # conftest: synthetic tables, ros_env
@@ -31,13 +31,7 @@ sys.path.insert(0, str(REPO / 'test'))   # conftest: synthetic tables, ros_env
 
 def per_call_us(fn: Callable[[], Any], n: int, runs: int) -> float:
     """Median over `runs` of the mean time of `fn()` over `n` calls (us)."""
-    out = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        out.append((time.perf_counter() - t0) / n * 1e6)
-    return statistics.median(out)
+    return statistics.median(call_times_us(fn, n, runs))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,13 +14,14 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
+import signal
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 
-from machine import describe_machine
+from machine import cpu_seconds, describe_machine
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'test'))   # conftest: synthetic tables, ros_env
@@ -43,12 +44,6 @@ except KeyboardInterrupt:
 """
 
 
-def cpu_seconds(pid: int) -> float:
-    """utime + stime of a process (s) from /proc/<pid>/stat."""
-    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-
-
 def measure(args: list[str], env: dict[str, str], seconds: float, settle_s: float,
             log: Path) -> tuple[float, int]:
     """CPU % of one core over `seconds` after `settle_s`, and lines printed meanwhile."""
@@ -60,8 +55,13 @@ def measure(args: list[str], env: dict[str, str], seconds: float, settle_s: floa
         time.sleep(seconds)              # a measurement window, not synchronisation
         c1, t1, n1 = cpu_seconds(proc.pid), time.monotonic(), len(log.read_bytes().splitlines())
     finally:
-        proc.send_signal(2)
-        proc.wait(timeout=15)
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            raise
     return 100.0 * (c1 - c0) / (t1 - t0), int(round((n1 - n0) / (t1 - t0)))
 
 

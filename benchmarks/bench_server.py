@@ -36,19 +36,13 @@ import time
 from typing import Any
 
 import numpy as np
-from machine import describe_machine
+from machine import call_times_us, cpu_seconds, describe_machine
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'test'))   # conftest: synthetic_table, ros_env
 
 BODIES = ('tibia', 'patella')
 WARMUP_S = 0.5     # the tracker's unmeasured lead-in (s)
-
-
-def cpu_seconds(pid: int) -> float:
-    """utime + stime of a process (s) from /proc/<pid>/stat."""
-    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def tracker(domain_id: int, rate_hz: float, rate_s: float, flat_s: float) -> int:
@@ -127,13 +121,20 @@ def percentiles_ms(lat_ns: np.ndarray) -> str:
 
 def time_calls(fn: Any, n: int = 20000, runs: int = 5) -> tuple[float, float]:
     """Median and best-run per-call time (us) of fn()."""
-    per = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        per.append((time.perf_counter() - t0) / n * 1e6)
+    per = call_times_us(fn, n, runs)
     return float(np.median(per)), float(min(per))
+
+
+def _end_process(proc: subprocess.Popen[Any] | None) -> None:
+    """Terminate `proc` if it still runs (kill it after 5 s) and wait for it."""
+    if proc is None or proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -192,109 +193,119 @@ def main(argv: list[str] | None = None) -> int:
         [str(Path(sys.prefix) / 'bin' / 'table_server'), '--ros-args', '-p',
          f'table:={table_path}', '--log-level', 'warn'], stdout=subprocess.DEVNULL,
         stderr=open(tmp / 'node.err', 'wb'), env=dict(os.environ))
-    rclpy.init(domain_id=domain_id)
-    rx = rclpy.create_node('bench_receiver')
-    got: dict[str, list[tuple[int, int]]] = {b: [] for b in BODIES}
-    # The receiver must be cheaper than the node or it measures itself: raw CDR (the stamp
-    # is the first field after the 4-byte encapsulation header) and drain the queue per wake.
-    subs = {}
-    for body in BODIES:
-        def on_raw(data: bytes, lst: list[tuple[int, int]] = got[body], body: str = body) -> None:
-            sub = subs[body]
-            while data is not None:
-                sec, nanosec = struct.unpack_from('<iI', data, 4)
-                lst.append((sec * 1_000_000_000 + nanosec, time.time_ns()))
-                with sub.handle:
-                    taken = sub.handle.take_message(sub.msg_type, True)
-                data = taken[0] if taken is not None else None
-
-        subs[body] = rx.create_subscription(
-            PoseStamped, f'/knee/{body}/pose', on_raw,
-            QoSProfile(depth=1000, reliability=QoSReliabilityPolicy.RELIABLE), raw=True)
-    status: dict[str, str] = {}
-
-    def on_diag(m: DiagnosticArray) -> None:
-        for s in m.status:
-            if s.name == 'kneeseat table_server':
-                status.clear()
-                status.update({kv.key: kv.value for kv in s.values})
-
-    rx.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
-    executor = SingleThreadedExecutor()
-    executor.add_node(rx)
-    deadline = time.monotonic() + 30.0
-    while not all(rx.count_publishers(f'/knee/{b}/pose') for b in BODIES):
-        if time.monotonic() > deadline or node_proc.poll() is not None:
-            print('table_server did not come up:', (tmp / 'node.err').read_text())
-            return 1
-        executor.spin_once(timeout_sec=0.05)
     stop = threading.Event()
-
-    def spin() -> None:
-        # like table_server.serve(): wait on the output topics directly (rclpy's executor
-        # rebuilds its wait set per message, and at 2000 answers/s the receiver would
-        # compete with the node for the 2 cores); the executor serves /diagnostics
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-        wait_set = _rclpy.WaitSet(len(BODIES), 0, 0, 0, 0, 0, rx.context.handle)
-        due = 0.0
-        while not stop.is_set():
-            now = time.monotonic()
-            if now >= due:
-                executor.spin_once(timeout_sec=0.0)
-                due = now + 0.05
-            with contextlib.ExitStack() as held:
-                held.enter_context(rx.context.handle)
-                wait_set.clear_entities()
-                for sub in subs.values():
-                    held.enter_context(sub.handle)
-                    wait_set.add_subscription(sub.handle)
-                wait_set.wait(int(max(due - time.monotonic(), 0.0) * 1e9))
-            for body, sub in subs.items():
-                while True:
+    spinner: threading.Thread | None = None
+    hog: subprocess.Popen[bytes] | None = None
+    trk: subprocess.Popen[str] | None = None
+    try:
+        rclpy.init(domain_id=domain_id)
+        rx = rclpy.create_node('bench_receiver')
+        got: dict[str, list[tuple[int, int]]] = {b: [] for b in BODIES}
+        # The receiver must be cheaper than the node or it measures itself: raw CDR (the stamp
+        # is the first field after the 4-byte encapsulation header) and drain the queue per wake.
+        subs = {}
+        for body in BODIES:
+            def on_raw(data: bytes, lst: list[tuple[int, int]] = got[body],
+                       body: str = body) -> None:
+                sub = subs[body]
+                while data is not None:
+                    sec, nanosec = struct.unpack_from('<iI', data, 4)
+                    lst.append((sec * 1_000_000_000 + nanosec, time.time_ns()))
                     with sub.handle:
                         taken = sub.handle.take_message(sub.msg_type, True)
-                    if taken is None:
-                        break
-                    sec, nanosec = struct.unpack_from('<iI', taken[0], 4)
-                    got[body].append((sec * 1_000_000_000 + nanosec, time.time_ns()))
+                    data = taken[0] if taken is not None else None
 
-    spinner = threading.Thread(target=spin)
-    spinner.start()
+            subs[body] = rx.create_subscription(
+                PoseStamped, f'/knee/{body}/pose', on_raw,
+                QoSProfile(depth=1000, reliability=QoSReliabilityPolicy.RELIABLE), raw=True)
+        status: dict[str, str] = {}
 
-    hog = None
-    if args.competitor:
-        hog = subprocess.Popen([sys.executable, '-c', 'while True: pass'], preexec_fn=lambda:
-                               os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0)))
-        print(f'competitor: a CPU-bound busy loop, pid {hog.pid}')
-    trk = subprocess.Popen([sys.executable, __file__, '--tracker', '--domain-id',
-                            str(domain_id), '--rate-hz', str(args.rate_hz), '--rate-s',
-                            str(args.rate_s), '--flat-s', str(args.flat_s)],
-                           stdout=subprocess.PIPE, text=True, env=dict(os.environ))
-    phases, cpu = [], []
-    assert trk.stdout is not None
-    for line in trk.stdout:
-        cpu.append((time.monotonic(), cpu_seconds(node_proc.pid)))
-        record = json.loads(line)
-        if 'ready' not in record:
-            phases.append(record)
-    trk.wait()
-    hog_cpu = None
-    if hog is not None:
-        hog_cpu = cpu_seconds(hog.pid)
-        hog.kill()
-        hog.wait()
-    # let the last answers arrive: wait until nothing new for 0.5 s (bounded)
-    counts, quiet_since = -1, time.monotonic()
-    while time.monotonic() - quiet_since < 0.5:
-        n = sum(len(v) for v in got.values())
-        if n != counts:
-            counts, quiet_since = n, time.monotonic()
-        time.sleep(0.05)          # a pause in a benchmark loop, not test synchronisation
-    diag = dict(status)
-    stop.set()
-    spinner.join()
-    node_proc.send_signal(signal.SIGTERM)
-    rc = node_proc.wait(timeout=15)
+        def on_diag(m: DiagnosticArray) -> None:
+            for s in m.status:
+                if s.name == 'kneeseat table_server':
+                    status.clear()
+                    status.update({kv.key: kv.value for kv in s.values})
+
+        rx.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+        executor = SingleThreadedExecutor()
+        executor.add_node(rx)
+        deadline = time.monotonic() + 30.0
+        while not all(rx.count_publishers(f'/knee/{b}/pose') for b in BODIES):
+            if time.monotonic() > deadline or node_proc.poll() is not None:
+                print('table_server did not come up:', (tmp / 'node.err').read_text())
+                return 1
+            executor.spin_once(timeout_sec=0.05)
+
+        def spin() -> None:
+            # like table_server.serve(): wait on the output topics directly (rclpy's executor
+            # rebuilds its wait set per message, and at 2000 answers/s the receiver would
+            # compete with the node for the 2 cores); the executor serves /diagnostics
+            from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+            wait_set = _rclpy.WaitSet(len(BODIES), 0, 0, 0, 0, 0, rx.context.handle)
+            due = 0.0
+            while not stop.is_set():
+                now = time.monotonic()
+                if now >= due:
+                    executor.spin_once(timeout_sec=0.0)
+                    due = now + 0.05
+                with contextlib.ExitStack() as held:
+                    held.enter_context(rx.context.handle)
+                    wait_set.clear_entities()
+                    for sub in subs.values():
+                        held.enter_context(sub.handle)
+                        wait_set.add_subscription(sub.handle)
+                    wait_set.wait(int(max(due - time.monotonic(), 0.0) * 1e9))
+                for body, sub in subs.items():
+                    while True:
+                        with sub.handle:
+                            taken = sub.handle.take_message(sub.msg_type, True)
+                        if taken is None:
+                            break
+                        sec, nanosec = struct.unpack_from('<iI', taken[0], 4)
+                        got[body].append((sec * 1_000_000_000 + nanosec, time.time_ns()))
+
+        spinner = threading.Thread(target=spin)
+        spinner.start()
+
+        if args.competitor:
+            hog = subprocess.Popen([sys.executable, '-c', 'while True: pass'], preexec_fn=lambda:
+                                   os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0)))
+            print(f'competitor: a CPU-bound busy loop, pid {hog.pid}')
+        trk = subprocess.Popen([sys.executable, __file__, '--tracker', '--domain-id',
+                                str(domain_id), '--rate-hz', str(args.rate_hz), '--rate-s',
+                                str(args.rate_s), '--flat-s', str(args.flat_s)],
+                               stdout=subprocess.PIPE, text=True, env=dict(os.environ))
+        phases, cpu = [], []
+        assert trk.stdout is not None
+        for line in trk.stdout:
+            cpu.append((time.monotonic(), cpu_seconds(node_proc.pid)))
+            record = json.loads(line)
+            if 'ready' not in record:
+                phases.append(record)
+        trk.wait()
+        hog_cpu = None
+        if hog is not None:
+            hog_cpu = cpu_seconds(hog.pid)
+            hog.kill()
+            hog.wait()
+        # let the last answers arrive: wait until nothing new for 0.5 s (bounded)
+        counts, quiet_since = -1, time.monotonic()
+        while time.monotonic() - quiet_since < 0.5:
+            n = sum(len(v) for v in got.values())
+            if n != counts:
+                counts, quiet_since = n, time.monotonic()
+            time.sleep(0.05)          # a pause in a benchmark loop, not test synchronisation
+        diag = dict(status)
+        stop.set()
+        spinner.join()
+        node_proc.send_signal(signal.SIGTERM)
+        rc = node_proc.wait(timeout=15)
+    finally:    # an early return or an error must not leave a process or the spinner running
+        stop.set()
+        if spinner is not None:
+            spinner.join()
+        for proc in (trk, hog, node_proc):
+            _end_process(proc)
 
     from kneeseat_ros.table_server import INPUT_QOS, OUTPUT_QOS
     print('tracker: reliable PoseStamped publisher, separate process; node input QoS best '
