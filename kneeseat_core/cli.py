@@ -1,4 +1,5 @@
-"""`kneeseat` command line: settle, build, verify, info, lookup, export, synth, plot, render.
+"""`kneeseat` command line: settle, info, lookup, export, plot, render, kinematics, build,
+synth, verify.
 
 Errors a user can fix print one line on stderr and exit non-zero (no traceback unless
 --debug). `kneeseat settle` exit codes are part of its contract (docs/design.md): 0

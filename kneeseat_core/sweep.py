@@ -295,7 +295,7 @@ class _Sweep:
         config, f0, v0 = self.config, self.f0, self.v0
         jobs = []
         for b, spec in enumerate(config.bodies):
-            a0 = config.attitude(spec, config.flexion_rad[f0], config.varus_rad[v0])
+            a0 = self.centre_attitudes[b]
             params = config.params(spec, config.flexion_rad[f0], config.varus_rad[v0])
             jobs.append(self.job(b, [(f0, v0)], cold_start(a0, params), a0))
         return jobs
@@ -310,12 +310,11 @@ class _Sweep:
         """2. Spines: varus v0, flexion outward from f0, from the centre rest."""
         config, f0, v0 = self.config, self.f0, self.v0
         jobs = []
-        for b, spec in enumerate(config.bodies):
+        for b in range(len(config.bodies)):
             for side in _outward(len(config.flexion_rad), f0):
                 if side:
                     jobs.append(self.job(b, [(f, v0) for f in side], self.poses[b, f0, v0],
-                                         config.attitude(spec, config.flexion_rad[f0],
-                                                         config.varus_rad[v0])))
+                                         self.centre_attitudes[b]))
         return jobs
 
     def rib_jobs(self) -> list[ChainJob]:

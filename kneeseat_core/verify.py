@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 import trimesh
 
-from .args import vector3
+from .args import EXIT_NOT_CONVERGED, EXIT_OK, vector3
 from .errors import MeshError, TableError
 from .geometry import matrix_from_quat, pose_from, TOL
 from .knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
@@ -40,7 +40,8 @@ if TYPE_CHECKING:
 
 __all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'register_command']
 
-EXIT_AT_REST, EXIT_NOT_AT_REST = 0, 3
+# the exit codes of `kneeseat settle`: at rest as converged, not at rest as not converged
+EXIT_AT_REST, EXIT_NOT_AT_REST = EXIT_OK, EXIT_NOT_CONVERGED
 
 
 @dataclass(frozen=True, slots=True)

@@ -119,8 +119,8 @@ def decode_joint_state(data: bytes) -> JointStateFields:
         raise CdrError(f'JointState bytes too short ({len(data)} bytes): {err}') from None
 
 
-def _string_bytes(text: str, offset: int) -> bytes:
-    """A CDR string (length, bytes, NUL) starting 4-aligned at payload `offset`."""
+def _string_bytes(text: str) -> bytes:
+    """A CDR string (length, bytes, NUL); the caller places it 4-aligned."""
     raw = text.encode('utf-8') + b'\x00'
     return _U32.pack(len(raw)) + raw
 
@@ -135,7 +135,7 @@ class PoseStampedWriter:
     __slots__ = ('_frame',)
 
     def __init__(self, frame_id: str) -> None:
-        frame = _string_bytes(frame_id, 8)
+        frame = _string_bytes(frame_id)
         self._frame = frame + _pad(8 + len(frame), 8)
 
     def encode(self, sec: int, nanosec: int, pose: Sequence[float]) -> bytes:
@@ -159,11 +159,11 @@ def encode_joint_state(sec: int, nanosec: int, frame_id: str, names: Sequence[st
                        effort: Sequence[float]) -> bytes:
     """CDR bytes of a JointState (zero padding): what the recorder stores for an input."""
     out = bytearray(_STAMP.pack(sec, nanosec))
-    out += _string_bytes(frame_id, len(out))
+    out += _string_bytes(frame_id)
     out += _pad(len(out), 4) + _U32.pack(len(names))
     for name in names:
         out += _pad(len(out), 4)
-        out += _string_bytes(name, len(out))
+        out += _string_bytes(name)
     for values in (position, velocity, effort):
         out += _pad(len(out), 4) + _U32.pack(len(values))
         if values:
@@ -184,9 +184,9 @@ class TfWriter:
             variants = []
             for start in (0, 4):
                 body = bytearray(b'\x00' * 8)            # the stamp's place
-                body += _string_bytes(parent, start + len(body))
+                body += _string_bytes(parent)
                 body += _pad(start + len(body), 4)
-                body += _string_bytes(child, start + len(body))
+                body += _string_bytes(child)
                 body += _pad(start + len(body), 8)
                 variants.append(bytes(body[8:]))
             self._frames[(parent, child)] = (variants[0], variants[1])
@@ -200,9 +200,7 @@ class TfWriter:
         for parent, child, pose in transforms:
             names = self._frames[(parent, child)][(offset % 8) // 4]
             out += (stamp, names, _POSE.pack(*pose))
-            offset += 8 + len(names) + 56
-            if offset % 4:
-                raise AssertionError('TransformStamped ends 4-aligned')
+            offset += 8 + len(names) + 56     # 4-aligned: the name blocks are padded
         return CDR_LE + b''.join(out)
 
 

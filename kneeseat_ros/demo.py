@@ -108,8 +108,9 @@ class _Run:
 def _phase_table(args: argparse.Namespace, run: _Run) -> None:
     """Phase 1: build or reuse the table; find the bag to replay."""
     from kneeseat_ros.replay import load_messages
-    if args.bag is not None:
-        load_messages(args.bag, [POSE_TOPIC])        # a bad --bag fails before the build
+    sent = None
+    if args.bag is not None:                         # a bad --bag fails before the build
+        sent = len(load_messages(args.bag, [POSE_TOPIC]))
     step = 1.0 if args.full_grid else args.grid_step_deg
     t = time.monotonic()
     run.table_path, run.table, run.how = prepare_table(run.out, step, args.workers,
@@ -119,7 +120,7 @@ def _phase_table(args: argparse.Namespace, run: _Run) -> None:
     print(f'demo: table {run.table_path} ({run.how}, {run.timings["table"]:.1f} s)',
           flush=True)
     run.bag = args.bag if args.bag is not None else demo_bag(run.out, run.table)
-    run.sent = len(load_messages(run.bag, [POSE_TOPIC]))
+    run.sent = len(load_messages(run.bag, [POSE_TOPIC])) if sent is None else sent
     run.sessions = run.out / 'sessions'
     run.sessions.mkdir(exist_ok=True)
     logs = run.out / 'logs'
@@ -243,9 +244,6 @@ def run(args: argparse.Namespace) -> int:
     session, dev_m, dev_q, png = _phase_read_and_plot(run)
     run.timings['total'] = time.monotonic() - t_start + run.timings.get('setup', 0.0)
     _print_summary(run, session, dev_m, dev_q, png)
-    if session.answered == 0:
-        raise DemoError(f'the server answered none of the {run.sent} replayed messages; see '
-                        f'{run.server_log}')
     return 0
 
 

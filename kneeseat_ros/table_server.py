@@ -50,8 +50,8 @@ from kneeseat_ros import topics
 from kneeseat_ros.conversions import body_markers, DROP_REASONS, stamp_from_ns, stamp_ns
 from kneeseat_ros.diagnostics import Counters, NodeState, status
 from kneeseat_ros.responder import Responder
-from kneeseat_ros.served import load_table, Route, Served
-from kneeseat_ros.server_params import declare_parameters, ServerParams, USAGE
+from kneeseat_ros.served import Route, Served
+from kneeseat_ros.server_params import declare_parameters, USAGE
 from kneeseat_ros.spin import drain, Handler, InputsGroup, run_node, serve
 from kneeseat_ros.topics import STATUS_NAME
 from kneeseat_ros.tracker import load_registration, Pairer, Registration
@@ -59,8 +59,7 @@ from kneeseat_ros.tracker import load_registration, Pairer, Registration
 if TYPE_CHECKING:
     from kneeseat_ros.recorder import BagRecorder
 
-__all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'TF_QOS', 'STATUS_NAME', 'ServerParams', 'TableServer',
-           'load_table', 'main', 'USAGE']
+__all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'TF_QOS', 'STATUS_NAME', 'TableServer', 'main', 'USAGE']
 
 # Sensor-data QoS (best effort, volatile, keep last) as the demos use, with a deeper queue:
 # depth 5 is 5 ms at 1 kHz; 1000 is 0.5 s at 2 kHz, longer than the scheduler stalls seen
