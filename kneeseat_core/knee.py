@@ -379,8 +379,9 @@ def load_config(path: Path, mesh_dir: Path | None = None,
         data = dict(data or {})
         for key, value in overrides.items():
             section = data.get(key)
-            both = isinstance(value, dict) and isinstance(section, dict)
-            data[key] = {**section, **value} if both else value
+            if isinstance(value, dict) and isinstance(section, dict):
+                value = {**section, **value}
+            data[key] = value
     try:
         return _parse(data, path, mesh_dir)
     except ConfigError as err:
