@@ -25,10 +25,10 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'kneeseat = kneeseat_core.cli:main',
+            'kneeseat = kneeseat_core.cli.main:main',
             'table_server = kneeseat_ros.table_server:main',
-            'replay = kneeseat_ros.replay:main',
-            'make_bag = kneeseat_ros.make_bag:main',
+            'replay = kneeseat_ros.bag.replay:main',
+            'make_bag = kneeseat_ros.bag.make_bag:main',
         ],
     },
 )

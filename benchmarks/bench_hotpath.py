@@ -46,12 +46,12 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.serialization import serialize_message
 
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_core.table_io import read_table, write_table
+    from kneeseat_core.table.io import read_table, write_table
     from kneeseat_ros.cdr import (decode_joint_state, encode_joint_state, PoseStampedWriter,
                                   serialize)
-    from kneeseat_ros.conversions import (angles_from_joint_state, angles_from_joints,
-                                          joint_state, pose_stamped, stamp_from_ns)
-    from kneeseat_ros.recorder import BagRecorder
+    from kneeseat_ros.conversions import (angles_from_joint_state, angles_from_joints, joint_state,
+                                          pose_stamped, stamp_from_ns)
+    from kneeseat_ros.bag.recorder import BagRecorder
     from kneeseat_ros.table_server import INPUT_QOS, OUTPUT_QOS
     from sensor_msgs.msg import JointState
 

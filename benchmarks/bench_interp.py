@@ -4,7 +4,7 @@ Run: `python benchmarks/bench_interp.py [--runs 7] [--calls 20000] [--no-numpy]`
 Prints the machine, then median / p99 / max microseconds per call over all runs (each call
 timed alone with perf_counter_ns, so about 0.1 us of timer cost is included) and the mean
 from each run's total time. The same query written with numpy (the alternative that
-kneeseat_core.table does not use) is timed the same way for comparison.
+kneeseat_core.table.pose_table does not use) is timed the same way for comparison.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
-from kneeseat_core.table import PoseTable
+from kneeseat_core.table.pose_table import PoseTable
 from machine import describe_machine
 
 

@@ -8,7 +8,7 @@ resolution of 0.1 degrees; the shallow-rest scenes (test/settle_cases.py SHALLOW
 in every variant at 0.1 degrees; and every plain scene at millimetre scale through
 `kneeseat settle --units mm --json` (unless --no-mm). Each row is run with
 `--method default` and `--method patent`, judged against the thresholds, and its end
-pose handed to the independent referee (kneeseat_core.referee) for the travel it can
+pose handed to the independent referee (kneeseat_core.referee.judge) for the travel it can
 still gain.
 """
 from __future__ import annotations
@@ -31,9 +31,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'test'))
 
-from kneeseat_core.cli import main as cli_main  # noqa: E402
+from kneeseat_core.cli.main import main as cli_main  # noqa: E402
 from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix  # noqa: E402
-from kneeseat_core.referee import Referee  # noqa: E402
+from kneeseat_core.referee.judge import Referee  # noqa: E402
 from kneeseat_core.settle import settle, SettleParams  # noqa: E402
 import settle_cases as sc  # noqa: E402
 

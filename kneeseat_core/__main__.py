@@ -1,6 +1,6 @@
 """`python -m kneeseat_core` runs the kneeseat CLI."""
 import sys
 
-from .cli import main
+from .cli.main import main
 
 sys.exit(main())

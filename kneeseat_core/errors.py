@@ -1,7 +1,7 @@
 """The error tree: one root, one subclass per failure a user can fix.
 
 Every message says what failed, where (file, key, angle) and how to fix it. Only
-`kneeseat_core.cli.main` and ROS node callbacks catch these; bugs crash loudly.
+`kneeseat_core.cli.main.main` and ROS node callbacks catch these; bugs crash loudly.
 """
 from __future__ import annotations
 

@@ -23,18 +23,17 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from kneeseat_core.errors import NonFiniteError, OutOfRangeError
-from kneeseat_core.table import Lookup
-from .cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state,
-                  encode_pose_stamped, PoseStampedWriter)
-from .conversions import angles_from_joints, angles_from_orientation, quat_xyzw, \
-    rigid_from_fields
+from kneeseat_core.table.pose_table import Lookup
+from .cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state, encode_pose_stamped,
+                  PoseStampedWriter)
+from .conversions import angles_from_joints, angles_from_orientation, quat_xyzw, rigid_from_fields
 from .diagnostics import Counters
 from .errors import BadInputError, CdrError
 from .served import Route
 from .tracker import compose, Pairer, Registration, relative_rotation, Rigid
 
 if TYPE_CHECKING:
-    from .recorder import BagRecorder
+    from .bag.recorder import BagRecorder
 
 __all__ = ['Responder', 'WARN_THROTTLE_S']
 

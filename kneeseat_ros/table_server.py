@@ -38,8 +38,8 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
-from rclpy.qos import (qos_profile_sensor_data, QoSDurabilityPolicy, QoSHistoryPolicy,
-                       QoSProfile, QoSReliabilityPolicy)
+from rclpy.qos import (qos_profile_sensor_data, QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile,
+                       QoSReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
@@ -57,7 +57,7 @@ from kneeseat_ros.topics import STATUS_NAME
 from kneeseat_ros.tracker import load_registration, Pairer, Registration
 
 if TYPE_CHECKING:
-    from kneeseat_ros.recorder import BagRecorder
+    from kneeseat_ros.bag.recorder import BagRecorder
 
 __all__ = ['INPUT_QOS', 'OUTPUT_QOS', 'TF_QOS', 'STATUS_NAME', 'TableServer', 'main', 'USAGE']
 
@@ -247,7 +247,7 @@ class TableServer(Node):
 
     def _start_recorder(self) -> None:
         try:
-            from kneeseat_ros.recorder import open_session
+            from kneeseat_ros.bag.recorder import open_session
         except ImportError as err:
             raise ConfigError(f"parameter 'record' is set but the recorder is unavailable "
                               f"({err}); set record:='' or install kneeseat_ros fully") from None

@@ -13,11 +13,12 @@ from visualization_msgs.msg import Marker
 
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
-from kneeseat_ros.conversions import (
-    angles_from_joint_state, angles_from_pose_stamped, AttitudeDecoder, body_markers,
-    diagnostic_status, display_mesh_paths, joint_state, MARKER_ID_STRIDE, mesh_marker,
-    pose_from_msg, pose_stamped, pose_stamped_for_attitude, QUAT_NORM_TOL, stamp_from_ns,
-    stamp_ns)
+from kneeseat_ros.conversions import (angles_from_joint_state, angles_from_pose_stamped,
+                                      AttitudeDecoder, body_markers, diagnostic_status,
+                                      display_mesh_paths, joint_state, MARKER_ID_STRIDE,
+                                      mesh_marker, pose_from_msg, pose_stamped,
+                                      pose_stamped_for_attitude, QUAT_NORM_TOL, stamp_from_ns,
+                                      stamp_ns)
 from kneeseat_ros.errors import BadInputError
 
 TKA_AXES = KneeAxes.from_vectors([0, 0, 1], [1, 0, 0], [0, 1, 0])

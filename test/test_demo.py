@@ -22,12 +22,12 @@ from rosbags.typesys import get_typestore, Stores
 import yaml
 
 from kneeseat_core.geometry import matrix_from_quat
-from kneeseat_core.plots import SESSION_SIZE_PX
-from kneeseat_core.table import PoseTable
-from kneeseat_core.table_io import read_table
-from kneeseat_ros.demo import main, PLOT_NAME
-from kneeseat_ros.demo_table import demo_bag, prepare_table
-from kneeseat_ros.replay import load_messages
+from kneeseat_core.report.plots import SESSION_SIZE_PX
+from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table.io import read_table
+from kneeseat_ros.demos.demo import main, PLOT_NAME
+from kneeseat_ros.demos.demo_table import demo_bag, prepare_table
+from kneeseat_ros.bag.replay import load_messages
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 SHIPPED = REPO / 'data' / 'angle_bags' / 'gait_demo'
@@ -36,10 +36,10 @@ DEMO_TIMEOUT_S = 300.0
 
 
 def run_demo(out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
-    """`python -m kneeseat_ros.demo` in its own ROS domain; fails the test on a hang."""
+    """`python -m kneeseat_ros.demos.demo` in its own ROS domain; fails the test on a hang."""
     env = ros_env(next_domain_id())
     return subprocess.run(
-        [sys.executable, '-m', 'kneeseat_ros.demo', '--out', str(out), '--grid-step-deg',
+        [sys.executable, '-m', 'kneeseat_ros.demos.demo', '--out', str(out), '--grid-step-deg',
          f'{STEP_DEG:g}', '--quiet', *extra],
         env=env, capture_output=True, text=True, timeout=DEMO_TIMEOUT_S, cwd=REPO)
 

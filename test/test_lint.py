@@ -14,8 +14,8 @@ def test_flake8_is_clean() -> None:
 
 
 def test_core_does_not_import_ros() -> None:
-    code = ('import sys, kneeseat_core.cli, kneeseat_core.build, kneeseat_core.plots, '
-            'kneeseat_core.cluster; '
+    code = ('import sys, kneeseat_core.cli.main, kneeseat_core.sweep.build, '
+            'kneeseat_core.report.plots, kneeseat_core.sweep.cluster; '
             'print(sorted(m for m in sys.modules if m.split(".")[0] in '
             '("rclpy", "mcap", "mcap_ros2", "geometry_msgs", "sensor_msgs")))')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,

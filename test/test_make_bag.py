@@ -14,7 +14,7 @@ from rosbags.typesys import get_typestore, Stores
 
 from conftest import REPO
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, rotation_angle
-from kneeseat_ros.make_bag import DEFAULT_START_NS, gait, main, sweep
+from kneeseat_ros.bag.make_bag import DEFAULT_START_NS, gait, main, sweep
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 TKA_AXES = KneeAxes.from_vectors([0, 0, 1], [1, 0, 0], [0, 1, 0])
@@ -128,9 +128,9 @@ def test_gait_bag_with_joint_states(tmp_path: Path) -> None:
 
 
 def test_table_axes(tmp_path: Path) -> None:
-    from kneeseat_core.table import PoseTable
-    from kneeseat_core.table_format import SCHEMA
-    from kneeseat_core.table_io import write_table
+    from kneeseat_core.table.pose_table import PoseTable
+    from kneeseat_core.table.format import SCHEMA
+    from kneeseat_core.table.io import write_table
     axes = {'flexion': [1.0, 0.0, 0.0], 'varus': [0.0, 0.0, 1.0], 'long': [0.0, 1.0, 0.0]}
     meta = {'schema': SCHEMA, 'kneeseat_version': '0', 'axes': axes,
             'reference': {'name': 'femur', 'frame': 'femur_ref', 'mesh': 'f.stl',

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from kneeseat_core.errors import MeshError
-from kneeseat_core.meshes import check_mesh, load_mesh
+from kneeseat_core.meshes.load import check_mesh, load_mesh
 
 FORMATS = ('stl', 'ply', 'obj', 'off', 'glb')
 # a tetrahedron, 10 mm edges along the axes, outward winding (closed, watertight)
@@ -167,7 +167,7 @@ def test_degenerate_and_duplicate_triangles_are_removed(
                         [1, 1, 2],      # repeated vertex
                         [0, 2, 1]]])    # duplicate of the first face
     path = write_tetra_text(tmp_path / 'dirty.ply', vertices, faces)
-    with caplog.at_level(logging.INFO, logger='kneeseat_core.meshes'):
+    with caplog.at_level(logging.INFO, logger='kneeseat_core.meshes.load'):
         mesh = load_mesh(path)
     assert len(mesh.faces) == 4 and len(mesh.vertices) == 4
     assert mesh.is_watertight
@@ -188,7 +188,7 @@ def test_not_watertight_is_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFi
     open_box = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)
     path = tmp_path / 'open.stl'
     open_box.export(path)
-    with caplog.at_level(logging.WARNING, logger='kneeseat_core.meshes'):
+    with caplog.at_level(logging.WARNING, logger='kneeseat_core.meshes.load'):
         mesh = load_mesh(path)
     assert len(mesh.faces) == 11 and not mesh.is_watertight
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
@@ -200,7 +200,7 @@ def test_watertight_mesh_gives_no_warning(tmp_path: Path,
                                           caplog: pytest.LogCaptureFixture) -> None:
     path = tmp_path / 'box.stl'
     box_m().export(path)
-    with caplog.at_level(logging.WARNING, logger='kneeseat_core.meshes'):
+    with caplog.at_level(logging.WARNING, logger='kneeseat_core.meshes.load'):
         load_mesh(path)
     assert not caplog.records
 

@@ -14,11 +14,11 @@ import trimesh
 from conftest import SHARED_DATA
 from kneeseat_core.errors import ConfigError, KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
-from kneeseat_core.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PANEL_IN,
-                                 PNG_KEY_NONCONVERGED, plot_convergence_map, plot_table)
-from kneeseat_core.render import render_table, RENDER_EXTRA_IN, RENDER_PANEL_IN
+from kneeseat_core.report.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PANEL_IN,
+                                        PNG_KEY_NONCONVERGED, plot_convergence_map, plot_table)
+from kneeseat_core.report.render import render_table, RENDER_EXTRA_IN, RENDER_PANEL_IN
 from kneeseat_core.status import Status
-from kneeseat_core.table import PoseTable
+from kneeseat_core.table.pose_table import PoseTable
 
 # TKA knee frame: X anterior, Y superior, Z lateral; flexion about Z, varus about X.
 AXES = {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0], 'long': [0.0, 1.0, 0.0]}
@@ -262,7 +262,7 @@ def test_render_of_the_real_knee_implants(tmp_path: Path) -> None:
 
 def test_simplification_keeps_the_shape_within_budget() -> None:
     """Vertex clustering: at most the budget, same bounding box to within a cell or two."""
-    from kneeseat_core.render import _simplified
+    from kneeseat_core.report.render import _simplified
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.03)        # 20,480 faces
     vertices, faces, closed = _simplified(sphere, 2000)
     assert closed and 500 < len(faces) <= 2000

@@ -24,9 +24,9 @@ import yaml
 
 from kneeseat_ros.errors import RecorderError
 from kneeseat_ros.cdr import serialize
-from kneeseat_ros.msgdefs import message_definition, qos_to_dicts, SEPARATOR, type_hash
-from kneeseat_ros.recorder import BagRecorder
-from kneeseat_ros.recovery import read_readable, recover
+from kneeseat_ros.bag.msgdefs import message_definition, qos_to_dicts, SEPARATOR, type_hash
+from kneeseat_ros.bag.recorder import BagRecorder
+from kneeseat_ros.bag.recovery import read_readable, recover
 
 T0 = 1_700_000_000_000_000_000
 SHA = 'ab' * 32
@@ -236,7 +236,7 @@ DISK_FULL = textwrap.dedent("""
     import json, resource, signal, sys
     from pathlib import Path
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_ros.recorder import BagRecorder
+    from kneeseat_ros.bag.recorder import BagRecorder
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a failing write, not a kill
     resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
     rec = BagRecorder(Path(sys.argv[1]), chunk_size_bytes=2000)
@@ -270,7 +270,7 @@ WRITER = textwrap.dedent("""
     import signal, sys, threading
     from pathlib import Path
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_ros.recorder import BagRecorder
+    from kneeseat_ros.bag.recorder import BagRecorder
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     rec = BagRecorder(Path(sys.argv[1]), chunk_size_bytes=2000, table_sha256='cafe')
@@ -341,7 +341,7 @@ def test_sigterm_leaves_a_complete_bag(tmp_path: Path) -> None:
 
 def test_recover_cli_reports_missing_bag(tmp_path: Path,
                                          capsys: pytest.CaptureFixture[str]) -> None:
-    from kneeseat_ros.recovery import main
-    assert main(['recover', str(tmp_path / 'nothing')]) == 2
+    from kneeseat_ros.bag.recovery import main
+    assert main([str(tmp_path / 'nothing')]) == 2
     err = capsys.readouterr().err
     assert err.startswith('recover: error: no .mcap file found') and err.count('\n') == 1

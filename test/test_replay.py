@@ -16,9 +16,9 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 
-from kneeseat_ros.make_bag import main as make_bag
-from kneeseat_ros.recorder import BagRecorder
-from kneeseat_ros.replay import load_messages, main
+from kneeseat_ros.bag.make_bag import main as make_bag
+from kneeseat_ros.bag.recorder import BagRecorder
+from kneeseat_ros.bag.replay import load_messages, main
 
 # conftest.domain_id: own domain, loopback discovery and the venv prefix on the ament path,
 # set in os.environ for every test (the replay subprocess inherits it)
@@ -114,7 +114,7 @@ def test_load_messages_from_directory_and_single_file(tmp_path: Path) -> None:
 
 def _replay(bag: Path, *extra: str) -> subprocess.Popen[str]:
     return track_child(subprocess.Popen(
-        [sys.executable, '-m', 'kneeseat_ros.replay', str(bag), '--wait-for-subscribers', '2',
+        [sys.executable, '-m', 'kneeseat_ros.bag.replay', str(bag), '--wait-for-subscribers', '2',
          '--wait-timeout-s', '30', *extra],
         env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
 

@@ -7,7 +7,7 @@ push 10 degrees off its axis and starts 10-25 degrees off about the push, and a 
 in a 90-degree V groove with the push tilted 8.6 degrees across it. Each plain, tilted,
 with the scene rotated, and at millimetre scale through the CLI. Thresholds: position
 within 2 x resolution + 0.05 mm in the determined directions, spin within 1.5 x the 0.1
-degree rotation resolution, and the referee (kneeseat_core.referee, which shares no
+degree rotation resolution, and the referee (kneeseat_core.referee.judge, which shares no
 search code with the settle) gains no more than the resolution from the reported pose.
 """
 from __future__ import annotations
@@ -23,10 +23,10 @@ import pytest
 import trimesh
 
 from conftest import REPO
-from kneeseat_core.cli import main
-from kneeseat_core.collision import RigidBody
+from kneeseat_core.cli.main import main
+from kneeseat_core.meshes.collision import RigidBody
 from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix, rotation_about
-from kneeseat_core.referee import Envelope, Referee
+from kneeseat_core.referee.judge import Envelope, Referee
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 from kneeseat_core.status import Status
 import settle_cases as sc
@@ -139,13 +139,14 @@ def test_referee_catches_a_pose_that_is_not_at_rest() -> None:
 
 
 def test_referee_shares_no_code_with_the_settle() -> None:
-    tree = ast.parse((REPO / 'kneeseat_core' / 'referee.py').read_text())
+    tree = ast.parse((REPO / 'kneeseat_core' / 'referee' / 'judge.py').read_text())
     imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
     imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import)
                  for alias in node.names}
     assert not imported & {'settle', 'search', 'climb', 'patent', 'collision', 'sweep'}
     assert imported <= {'__future__', 'dataclasses', 'math', 'typing', 'fcl', 'numpy',
-                        'scipy.optimize', 'scipy.spatial.transform', 'trimesh', 'typed'}
+                        'scipy.optimize', 'scipy.spatial.transform', 'trimesh',
+                        'kneeseat_core.typed'}
 
 
 def sloped_block(slope: float) -> trimesh.Trimesh:

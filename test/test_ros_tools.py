@@ -25,9 +25,9 @@ from test_table_server import ServerProcess
 from test_tracker import rigid
 import yaml
 
-from kneeseat_core.table_io import read_table
-from kneeseat_ros.tracker_demo import (example_registration, expected_world, leg_motion,
-                                       pose_matrix, registration_yaml)
+from kneeseat_core.table.io import read_table
+from kneeseat_ros.demos.tracker_demo import (example_registration, expected_world, leg_motion,
+                                             pose_matrix, registration_yaml)
 
 pytestmark = pytest.mark.ros
 TFMESSAGE_HASH = 'RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087'

@@ -21,7 +21,7 @@ import pytest
 import trimesh
 
 from conftest import fcl_collides, fcl_object
-from kneeseat_core import synth
+from kneeseat_core.knee import synth
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.typed import Floats, Pose
 
@@ -156,7 +156,7 @@ def test_two_calls_give_identical_arrays(knee: dict[str, trimesh.Trimesh]) -> No
 
 
 def test_stl_hash_is_stable_across_processes() -> None:
-    code = ('import hashlib, sys; from kneeseat_core import synth; '
+    code = ('import hashlib, sys; from kneeseat_core.knee import synth; '
             'k = synth.default_knee(); '
             'print(" ".join(hashlib.sha256(synth.stl_bytes(k[n])).hexdigest() '
             'for n in ("femur", "tibia", "patella")))')

@@ -23,10 +23,10 @@ from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, NonFini
                                   OutOfRangeError, TableError)
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_angle
 from kneeseat_core.files import file_sha256
-from kneeseat_core.table import arrays_sha256, PoseTable
-from kneeseat_core.table_format import SCHEMA
-from kneeseat_core.table_io import read_table, with_hash, write_table
-from kneeseat_core.table_report import CSV_COLUMNS, describe, export_csv, lookup_json
+from kneeseat_core.table.pose_table import arrays_sha256, PoseTable
+from kneeseat_core.table.format import SCHEMA
+from kneeseat_core.table.io import read_table, with_hash, write_table
+from kneeseat_core.table.summary import CSV_COLUMNS, describe, export_csv, lookup_json
 
 # TKA knee frame: X anterior, Y superior, Z lateral -> flexion about Z, varus about X.
 AXES = {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0], 'long': [0.0, 1.0, 0.0]}
@@ -183,7 +183,7 @@ def test_file_sha256_streams_whole_file(tmp_path: Path) -> None:
 
 
 def test_core_does_not_import_ros() -> None:
-    code = 'import sys, kneeseat_core.table; print("rclpy" in sys.modules)'
+    code = 'import sys, kneeseat_core.table.pose_table; print("rclpy" in sys.modules)'
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == 'False'
@@ -592,7 +592,7 @@ def test_failed_write_mid_file_keeps_the_old_table(table: PoseTable, tmp_path: P
         import resource, signal
         from pathlib import Path
         from kneeseat_core.errors import TableError
-        from kneeseat_core.table_io import read_table, write_table
+        from kneeseat_core.table.io import read_table, write_table
         big = read_table(Path({str(tmp_path / 'big.npz')!r}))
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))

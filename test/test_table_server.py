@@ -33,8 +33,8 @@ import yaml
 
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import matrix_from_quat
-from kneeseat_core.table import PoseTable
-from kneeseat_core.table_io import read_table
+from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table.io import read_table
 from kneeseat_ros.conversions import (joint_state, pose_stamped, pose_stamped_for_attitude,
                                       stamp_from_ns, stamp_ns)
 from kneeseat_ros.table_server import main, STATUS_NAME, TableServer
@@ -214,7 +214,7 @@ def test_answers_equal_core_interpolation_and_markers(tmp_path: Path, domain_id:
     for name in ('femur', *BODIES):
         (mesh_dir / f'{name}.stl').write_bytes(b'solid x\nendsolid x\n')
     path = tmp_path / 'knee.npz'
-    from kneeseat_core.table_io import write_table
+    from kneeseat_core.table.io import write_table
     write_table(path, synthetic_table(seed=2, mesh_dir=mesh_dir))
     table = read_table(path)
     srv = ServerProcess(tmp_path, domain_id, path, 'publish_markers:=true',
@@ -373,7 +373,7 @@ def test_reload_swaps_tables_and_keeps_old_on_failure(server: ServerProcess, pro
 @pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT])
 def test_signal_exits_0_and_finalises_recording(sig: int, tmp_path: Path, domain_id: int,
                                                 table_path: Path, probe: Probe) -> None:
-    pytest.importorskip('kneeseat_ros.recorder', reason='recorder not available')
+    pytest.importorskip('kneeseat_ros.bag.recorder', reason='recorder not available')
     record = tmp_path / 'bags'
     srv = ServerProcess(tmp_path, domain_id, table_path, f'record:={record}',
                         'diagnostics_period_s:=0.1')
@@ -594,7 +594,7 @@ def test_record_refused_at_start_leaves_nothing(tmp_path: Path, table_path: Path
                                                 context: Any,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """A message definition that cannot be found: ConfigError naming it, no bag directory."""
-    from kneeseat_ros import msgdefs
+    from kneeseat_ros.bag import msgdefs
     monkeypatch.setattr(msgdefs, '_share_dir', lambda package: None)
     msgdefs.message_definition.cache_clear()
     msgdefs.type_hash.cache_clear()

@@ -2,7 +2,7 @@
 
 The tibial insert is pushed along +Y into the femoral component, from the benchmark's start
 (5 mm below, 3 mm lateral, 5 degrees about Y) and from ten seeded starts around it. Each
-end pose is judged by the referee (kneeseat_core.referee: its own python-fcl objects,
+end pose is judged by the referee (kneeseat_core.referee.judge: its own python-fcl objects,
 boolean queries only, a Nelder-Mead climb of the travel from a two-resolution simplex):
 at rest it gains no more than the resolution. A control checks that the referee does see
 a pose that is not at rest (the first contact straight up from the start).
@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from kneeseat_core.collision import RigidBody
+from kneeseat_core.meshes.collision import RigidBody
 from kneeseat_core.geometry import pose_from, rotation_about
-from kneeseat_core.meshes import load_mesh
-from kneeseat_core.referee import Referee
+from kneeseat_core.meshes.load import load_mesh
+from kneeseat_core.referee.judge import Referee
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 
 TKA = SHARED_DATA / 'tka_dm'

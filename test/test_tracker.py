@@ -24,12 +24,11 @@ import yaml
 
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import quat_from_matrix
-from kneeseat_core.table_io import read_table
+from kneeseat_core.table.io import read_table
 from kneeseat_ros.conversions import pose_stamped, stamp_from_ns, stamp_ns
-from kneeseat_ros.tracker import (compose, inverse, load_registration, Pairer,
-                                  relative_rotation)
-from kneeseat_ros.tracker_demo import (example_registration, expected_world, leg_motion,
-                                       pose_matrix, registration_yaml)
+from kneeseat_ros.tracker import compose, inverse, load_registration, Pairer, relative_rotation
+from kneeseat_ros.demos.tracker_demo import (example_registration, expected_world, leg_motion,
+                                             pose_matrix, registration_yaml)
 
 
 def rigid(m: np.ndarray) -> tuple[float, ...]:
@@ -261,7 +260,7 @@ def test_tracker_mode_refuses_non_rigid_registration(tmp_path: Path, domain_id: 
 def test_tracker_demo_writes_its_picture(tmp_path: Path, domain_id: int) -> None:
     table_path = write_synthetic_table(tmp_path / 'knee.npz', seed=7)
     import sys
-    done = subprocess.run([sys.executable, '-m', 'kneeseat_ros.tracker_demo', '--out',
+    done = subprocess.run([sys.executable, '-m', 'kneeseat_ros.demos.tracker_demo', '--out',
                            str(tmp_path / 'out'), '--table', str(table_path), '--samples',
                            '30'], capture_output=True, text=True, timeout=120,
                           env=ros_env(domain_id))

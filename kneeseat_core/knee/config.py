@@ -1,0 +1,422 @@
+"""Knee configuration: bodies, axes, push directions, grid and settle parameters.
+
+A config is YAML (see config/*.yaml). Mesh paths are relative to `mesh_dir`, itself
+relative to the config file unless absolute; `--mesh-dir` overrides it. Degrees appear only
+in keys ending in `_deg`. Unknown keys are errors (a typo must not be silently ignored).
+
+Attitude of a moving body at grid cell (flexion, varus):
+    A = Rot(flexion_axis, flexion_fraction * flexion) @ Rot(varus_axis, varus_fraction * varus)
+Its push direction is A @ push, and its settle starts from A applied to the mesh as
+delivered (rotation about the push is what settling finds, with the translation). An
+optional `locked_slide` (a direction at neutral, turned by A) is a slide the body may not
+make: a patella's height along the groove is held by its tendon, not by the push - pushed
+onto the sagittally convex trochlea it would otherwise slide off the flange (tried on the
+total knee: with any fixed push it leaves the component within 10 degrees of flexion). The
+default knee's patella conforms to its trochlea and needs no lock.
+
+Search envelope: a settle may slide a body at most `settle.max_slide_m` across its push and
+spin it at most `settle.max_spin_deg` about it, measured from an anchor: in a sweep, the
+body's rest at the centre cell carried to the cell's attitude (kneeseat_core/sweep.py);
+a cell whose rest lies farther is "not converged" - geometry alone has no rest near that
+attitude. A body's own `envelope` ({max_slide_m, max_spin_deg}) makes the envelope hold
+instead: it stands in for the soft tissue the patent leaves out, the body rests inside it,
+and a rest on its boundary is reported as constrained.
+
+An optional `push_flexion_fraction` turns the push (and the locked slide) with
+push_flexion_fraction x flexion instead of the attitude's flexion_fraction x flexion: a
+patella's push is the resultant of its quadriceps and patellar-tendon pulls, which turns
+more slowly with flexion than the patella itself (docs/natural_knee.md).
+
+A body's `mesh` (and `display_mesh`) is a file name or a list of file names. The collision
+meshes of a body are combined into one rigid body (one BVH, contacts per triangle as for
+one mesh), e.g. a tibia carrying its cartilage and both menisci. `BodySpec.mesh` is the
+first of them; `BodySpec.meshes` holds them all.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from kneeseat_core.errors import ConfigError, SettleError, TableError
+from kneeseat_core.geometry import KneeAxes, pose_from, rotation_about, TOL, unit
+from kneeseat_core.meshes.load import UNIT_SCALE, Units
+from kneeseat_core.params import SettleParams
+from kneeseat_core.typed import Floats, Pose
+
+__all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values', 'neutral_pose',
+           'config_from_metadata']
+
+
+@dataclass(frozen=True, slots=True)
+class BodySpec:
+    """One body of the knee; `push` and fractions matter for moving bodies only.
+
+    The defaults are a config's: a body without `push` is pushed along +Y, the long axis of
+    the knee frame (Y superior), as a tibia below the femur is - unlike `SettleParams.push`,
+    the default of a single `kneeseat settle`, which pushes along -Y. A body follows the
+    whole flexion and varus unless its fractions say otherwise.
+    `mesh` and `display_mesh` are the first collision and display mesh; `meshes` and
+    `display_meshes` hold every one (filled from `mesh`/`display_mesh` when not given).
+    """
+
+    name: str
+    frame: str
+    mesh: Path
+    display_mesh: Path | None = None
+    push: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    flexion_fraction: float = 1.0
+    varus_fraction: float = 1.0
+    locked_slide: tuple[float, float, float] | None = None   # neutral frame, turns with A
+    envelope: tuple[float, float] | None = None   # (max slide m, max spin rad) that holds
+    meshes: tuple[Path, ...] = ()
+    display_meshes: tuple[Path, ...] = ()
+    push_flexion_fraction: float | None = None   # None: the push turns with the attitude
+
+    def __post_init__(self) -> None:
+        if not self.meshes:
+            object.__setattr__(self, 'meshes', (self.mesh,))
+        if not self.display_meshes and self.display_mesh is not None:
+            object.__setattr__(self, 'display_meshes', (self.display_mesh,))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class KneeConfig:
+    """A validated knee configuration (SI units; angles in radians)."""
+
+    name: str
+    units: Units
+    reference: BodySpec
+    bodies: tuple[BodySpec, ...]
+    axes: KneeAxes
+    flexion_rad: Floats          # (F,) ascending
+    varus_rad: Floats            # (V,) ascending
+    settle: SettleParams         # push is per body; this one's push is ignored
+    source: dict[str, Any]       # the config as read (for the table's metadata)
+
+    def attitude(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
+        """(3, 3) attitude of `body` at a grid cell (module docstring)."""
+        return self._turn(body.flexion_fraction, body.varus_fraction, flexion_rad, varus_rad)
+
+    def _turn(self, flexion_fraction: float, varus_fraction: float, flexion_rad: float,
+              varus_rad: float) -> Floats:
+        """(3, 3) the turn by these fractions of flexion and varus about the knee's axes."""
+        return (rotation_about(self.axes.flexion, flexion_fraction * flexion_rad)
+                @ rotation_about(self.axes.varus, varus_fraction * varus_rad))
+
+    def attitudes(self) -> Floats:
+        """(B, F, V, 3, 3) every body's attitude at every grid cell."""
+        return np.array([[[self.attitude(body, f, v) for v in self.varus_rad]
+                          for f in self.flexion_rad] for body in self.bodies])
+
+    def push_turn(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
+        """(3, 3) rotation that turns `body`'s neutral push and locked slide at a cell.
+
+        The attitude, unless the body has a `push_flexion_fraction` (module docstring).
+        """
+        fraction = body.flexion_fraction if body.push_flexion_fraction is None \
+            else body.push_flexion_fraction
+        return self._turn(fraction, body.varus_fraction, flexion_rad, varus_rad)
+
+    def push(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
+        """(3,) unit push direction of `body` at a grid cell, reference frame."""
+        push: Floats = self.push_turn(body, flexion_rad, varus_rad) @ np.asarray(body.push)
+        return push
+
+    def params(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> SettleParams:
+        """Settle parameters for `body` at a grid cell."""
+        turn = self.push_turn(body, flexion_rad, varus_rad)
+        push = turn @ np.asarray(body.push)
+        lock = None if body.locked_slide is None else turn @ np.asarray(body.locked_slide)
+        params = replace(self.settle, push=(float(push[0]), float(push[1]), float(push[2])),
+                         locked_slide=None if lock is None else
+                         (float(lock[0]), float(lock[1]), float(lock[2])))
+        if body.envelope is not None:
+            params = replace(params, max_slide_m=body.envelope[0],
+                             max_spin_rad=body.envelope[1], envelope_holds=True)
+        return params
+
+    def metadata(self) -> dict[str, Any]:
+        """The config as plain JSON-able data, with resolved absolute mesh paths."""
+        out = dict(self.source)
+        out['resolved'] = {
+            'reference': _spec_dict(self.reference),
+            'bodies': [_spec_dict(b) for b in self.bodies],
+            'settle': asdict(self.settle),
+            'flexion_deg': [math.degrees(v) for v in self.flexion_rad],
+            'varus_deg': [math.degrees(v) for v in self.varus_rad],
+        }
+        return out
+
+
+def neutral_pose(attitude: Floats) -> Pose:
+    """(4, 4) a body as delivered, turned by its `attitude` at a cell: the anchor its search
+    envelope is measured from."""
+    return pose_from(attitude, np.zeros(3))
+
+
+def config_from_metadata(meta: dict[str, Any]) -> KneeConfig:
+    """The knee config a table was built from, rebuilt from its metadata (`resolved` part:
+    absolute mesh paths, settle parameters, grid), without reading the YAML again.
+
+    Raises:
+        TableError: the metadata lacks the resolved config (a table written without it).
+    """
+    try:
+        resolved = meta['config']['resolved']
+        axes = KneeAxes.from_vectors(*(meta['axes'][k] for k in ('flexion', 'varus', 'long')))
+        known = set(BodySpec.__dataclass_fields__)
+        settle_fields = set(SettleParams.__dataclass_fields__) - {'push', 'locked_slide'}
+        settle = replace(_DEFAULTS, **{k: v for k, v in resolved['settle'].items()
+                                       if k in settle_fields})
+        return KneeConfig(str(meta['config'].get('name', meta.get('name', ''))),
+                          meta['config'].get('units', 'm'),
+                          _spec_from_dict(resolved['reference'], known),
+                          tuple(_spec_from_dict(b, known) for b in resolved['bodies']), axes,
+                          np.radians(resolved['flexion_deg']), np.radians(resolved['varus_deg']),
+                          settle, dict(meta['config']))
+    except (KeyError, TypeError, ValueError) as err:
+        raise TableError(f'the table metadata does not hold the config it was built from '
+                         f'({type(err).__name__}: {err}); rebuild it with this kneeseat') from None
+
+
+def _spec_from_dict(data: dict[str, Any], known: set[str]) -> BodySpec:
+    d = {k: v for k, v in data.items() if k in known}
+    d['mesh'] = Path(d['mesh'])
+    d['display_mesh'] = None if d.get('display_mesh') is None else Path(d['display_mesh'])
+    d['meshes'] = tuple(Path(m) for m in d.get('meshes') or ())
+    d['display_meshes'] = tuple(Path(m) for m in d.get('display_meshes') or ())
+    for key in ('push', 'locked_slide', 'envelope'):
+        if d.get(key) is not None:
+            d[key] = tuple(float(x) for x in d[key])
+    return BodySpec(**d)
+
+
+def _spec_dict(spec: BodySpec) -> dict[str, Any]:
+    d = asdict(spec)
+    d['mesh'] = str(spec.mesh)
+    d['display_mesh'] = None if spec.display_mesh is None else str(spec.display_mesh)
+    d['meshes'] = [str(m) for m in spec.meshes]
+    d['display_meshes'] = [str(m) for m in spec.display_meshes]
+    return d
+
+
+_TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle'}
+_BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction',
+              'varus_fraction', 'locked_slide', 'envelope', 'push_flexion_fraction'}
+_ENVELOPE_KEYS = {'max_slide_m', 'max_spin_deg'}
+_REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
+_GRID_KEYS = {'flexion_deg', 'varus_deg'}
+_SETTLE_KEYS = {'step_m', 'resolution_m', 'rotation_step_deg', 'rotation_resolution_deg',
+                'max_iterations', 'max_slide_m', 'max_spin_deg', 'method'}
+
+
+def _check_keys(data: Any, allowed: set[str], where: str, required: set[str]) -> None:
+    if not isinstance(data, dict):
+        raise ConfigError(f'{where} must be a mapping of keys, got {type(data).__name__}')
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise ConfigError(f'{where}: unknown key {unknown[0]!r}; allowed: '
+                          f'{", ".join(sorted(allowed))}')
+    missing = sorted(required - set(data))
+    if missing:
+        raise ConfigError(f'{where}: missing key {missing[0]!r}')
+
+
+def grid_values(spec: Any, where: str) -> Floats:
+    """[start, stop, step] in degrees -> ascending radians (stop included)."""
+    if (not isinstance(spec, (list, tuple)) or len(spec) != 3
+            or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in spec)):
+        raise ConfigError(f'{where} must be [start, stop, step] in degrees, got {spec!r}')
+    start, stop, step = (float(v) for v in spec)
+    if start == stop:
+        return np.array([math.radians(start)])
+    if step == 0:
+        raise ConfigError(f'{where}: step must not be zero')
+    count = abs(stop - start) / abs(step)
+    if abs(count - round(count)) > TOL.grid_step:
+        raise ConfigError(f'{where}: step {abs(step):g} does not divide {start:g}..{stop:g}; '
+                          'choose a step that lands on stop')
+    if round(count) + 1 > 100_000:
+        raise ConfigError(f'{where}: {round(count) + 1} grid values is too many')
+    values = np.linspace(start, stop, int(round(count)) + 1)
+    return np.radians(np.sort(values))
+
+
+def _vector(value: Any, where: str) -> tuple[float, float, float]:
+    try:
+        vec = unit(np.asarray(value, dtype=float), where)
+    except (TypeError, ValueError):
+        raise ConfigError(f'{where} must be three numbers like [0, 1, 0], got {value!r}') \
+            from None
+    return float(vec[0]), float(vec[1]), float(vec[2])
+
+
+def _number(value: Any, where: str) -> float:
+    if not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f'{where} must be a number, got {value!r}')
+    return float(value)
+
+
+def _mesh_path(mesh_dir: Path, value: Any, where: str) -> Path:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f'{where} must be a file name, got {value!r}')
+    path = Path(value) if Path(value).is_absolute() else mesh_dir / value
+    if not path.is_file():
+        raise ConfigError(f'{where}: mesh file {path} not found; fix the path or pass '
+                          '--mesh-dir DIR')
+    return path
+
+
+def _mesh_paths(mesh_dir: Path, value: Any, where: str) -> tuple[Path, ...]:
+    """A file name or a non-empty list of distinct file names -> paths."""
+    if not isinstance(value, list):
+        return (_mesh_path(mesh_dir, value, where),)
+    if not value:
+        raise ConfigError(f'{where} must be a file name or a non-empty list of file names, '
+                          'got []')
+    paths = tuple(_mesh_path(mesh_dir, v, f'{where}[{i}]') for i, v in enumerate(value))
+    if len(set(p.resolve() for p in paths)) != len(paths):
+        raise ConfigError(f'{where} lists a mesh twice ({value}); give each file once')
+    return paths
+
+
+def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
+    _check_keys(data, _BODY_KEYS if moving else _REF_KEYS, where, {'name', 'mesh'})
+    name = data['name']
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ConfigError(f'{where}.name must be a simple identifier (letters, digits, _), '
+                          f'got {name!r}')
+    display = data.get('display_mesh')
+    meshes = _mesh_paths(mesh_dir, data['mesh'], f'{where}.mesh')
+    displays = () if display is None else _mesh_paths(mesh_dir, display,
+                                                      f'{where}.display_mesh')
+    spec = BodySpec(name=name, frame=str(data.get('frame', name)), mesh=meshes[0],
+                    display_mesh=displays[0] if displays else None, meshes=meshes,
+                    display_meshes=displays)
+    if not moving:
+        return spec
+    given: dict[str, Any] = {}       # keys left out keep BodySpec's defaults
+    if 'push' in data:
+        given['push'] = _vector(data['push'], f'{where}.push')
+    for key in ('flexion_fraction', 'varus_fraction'):
+        if key in data:
+            given[key] = _number(data[key], f'{where}.{key}')
+    push_fraction = data.get('push_flexion_fraction')
+    return replace(spec, **given,
+                   locked_slide=(None if data.get('locked_slide') is None else
+                                 _vector(data['locked_slide'], f'{where}.locked_slide')),
+                   envelope=(None if data.get('envelope') is None else
+                             _envelope(data['envelope'], f'{where}.envelope')),
+                   push_flexion_fraction=(None if push_fraction is None else _number(
+                       push_fraction, f'{where}.push_flexion_fraction')))
+
+
+def _envelope(data: Any, where: str) -> tuple[float, float]:
+    """A body's envelope that holds: (max slide m, max spin rad), both required."""
+    _check_keys(data, _ENVELOPE_KEYS, where, _ENVELOPE_KEYS)
+    slide = _number(data['max_slide_m'], f'{where}.max_slide_m')
+    spin = _number(data['max_spin_deg'], f'{where}.max_spin_deg')
+    if not 0.0 < slide <= 0.1:
+        raise ConfigError(f'{where}.max_slide_m={slide:g} must be in (0, 0.1] m')
+    if not 0.0 < spin <= 180.0:
+        raise ConfigError(f'{where}.max_spin_deg={spin:g} must be in (0, 180] degrees')
+    return slide, math.radians(spin)
+
+
+_DEFAULTS = SettleParams()
+
+
+def _settle_params(data: Any) -> SettleParams:
+    _check_keys(data, _SETTLE_KEYS, 'settle', set())
+    try:
+        params = SettleParams(
+            step_m=float(data.get('step_m', _DEFAULTS.step_m)),
+            resolution_m=float(data.get('resolution_m', _DEFAULTS.resolution_m)),
+            rotation_step_rad=(None if data.get('rotation_step_deg') is None
+                               else math.radians(float(data['rotation_step_deg']))),
+            rotation_resolution_rad=(None if data.get('rotation_resolution_deg') is None
+                                     else math.radians(float(data['rotation_resolution_deg']))),
+            max_iterations=int(data.get('max_iterations', _DEFAULTS.max_iterations)),
+            max_slide_m=float(data.get('max_slide_m', _DEFAULTS.max_slide_m)),
+            max_spin_rad=(_DEFAULTS.max_spin_rad if data.get('max_spin_deg') is None
+                          else math.radians(float(data['max_spin_deg']))),
+            method=data.get('method', _DEFAULTS.method))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f'settle: {err}') from None
+    try:
+        params.check()
+    except SettleError as err:  # re-label as a config problem
+        raise ConfigError(f'settle: {err}') from None
+    return params
+
+
+def load_config(path: Path, mesh_dir: Path | None = None,
+                overrides: dict[str, Any] | None = None) -> KneeConfig:
+    """Read and validate a knee config.
+
+    Args:
+        path: YAML file.
+        mesh_dir: overrides the config's `mesh_dir`.
+        overrides: top-level sections merged in before validation, key by key within a
+            section (e.g. {'grid': {'flexion_deg': [...]}} keeps the file's varus grid).
+    Raises:
+        ConfigError: unreadable YAML, unknown or missing keys, missing meshes, zero-length
+            or non-orthogonal axes, bad grid or settle values; the message names the key.
+    """
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f'{path}: no such config file') from None
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f'{path}: not readable YAML ({str(err).splitlines()[0]})') from None
+    if overrides:
+        data = dict(data or {})
+        for key, value in overrides.items():
+            section = data.get(key)
+            if isinstance(value, dict) and isinstance(section, dict):
+                value = {**section, **value}
+            data[key] = value
+    try:
+        return _parse(data, path, mesh_dir)
+    except ConfigError as err:
+        raise ConfigError(f'{path}: {err}') from None
+
+
+def _parse(data: Any, path: Path, mesh_dir: Path | None) -> KneeConfig:
+    _check_keys(data, _TOP_KEYS, 'config', {'reference', 'axes', 'bodies', 'grid'})
+    units = data.get('units', 'm')
+    if units not in UNIT_SCALE:
+        raise ConfigError(f"units must be 'm' or 'mm', got {units!r}")
+    if mesh_dir is None:
+        mesh_dir = Path(data.get('mesh_dir', '.'))
+        if not mesh_dir.is_absolute():
+            mesh_dir = path.parent / mesh_dir
+    mesh_dir = mesh_dir.resolve()
+    if not mesh_dir.is_dir():
+        raise ConfigError(f'mesh_dir {mesh_dir} is not a directory; pass --mesh-dir DIR')
+    axes_data = data['axes']
+    _check_keys(axes_data, {'flexion', 'varus', 'long'}, 'axes', {'flexion', 'varus', 'long'})
+    axes = KneeAxes.from_vectors(*(np.asarray(_vector(axes_data[k], f'axes.{k}'))
+                                   for k in ('flexion', 'varus', 'long')))
+    reference = _body(data['reference'], mesh_dir, 'reference', moving=False)
+    bodies_data = data['bodies']
+    if not isinstance(bodies_data, list) or not bodies_data:
+        raise ConfigError('bodies must be a non-empty list of moving bodies')
+    bodies = tuple(_body(b, mesh_dir, f'bodies[{i}]', moving=True)
+                   for i, b in enumerate(bodies_data))
+    names = [reference.name] + [b.name for b in bodies]
+    if len(set(names)) != len(names):
+        raise ConfigError(f'body names must be unique, got {names}')
+    grid = data['grid']
+    _check_keys(grid, _GRID_KEYS, 'grid', _GRID_KEYS)
+    settle = _settle_params(data.get('settle') or {})
+    name = str(data.get('name', path.stem))
+    return KneeConfig(name, units, reference, bodies, axes,
+                      grid_values(grid['flexion_deg'], 'grid.flexion_deg'),
+                      grid_values(grid['varus_deg'], 'grid.varus_deg'), settle, data)

@@ -1,0 +1,394 @@
+"""`--method default`: the patent's loop carried to a true rest pose (see kneeseat_core/settle.py).
+
+Rest is a local maximum of the travel s: how far the body goes along the push Δ before it
+touches, as a function of the lateral state (slides across Δ and a spin about an axis
+parallel to Δ). The climb is a steepest ascent of s over that state, in four named steps
+over a small state object (`_Climb`):
+
+- `choose`: the contacts at the current pose are grouped into patches (one mean point
+  and normal each); each patch's depth gradient says how much depth a unit move gains
+  there, and the steepest move that gains at every patch is the minimum-norm point of
+  their convex hull (D1). A slope that could not gain one resolution across the whole
+  envelope counts as flat: the contacts balance.
+- `move`: a line search along that direction. The move is accepted while it does not
+  lose depth beyond the contact tolerance; its length grows (doubles) while the slope
+  measured at the new pose stays above half the slope at the old one and is cut to the
+  secant estimate of the crest when the slope changes sign (D3), so a shallow slope is
+  followed whatever the length of the climb and however little each step gains.
+  A move that loses depth teaches the contacts that blocked it (D2).
+- `prove`: when the contacts balance (or no move of the finest size is left), probes in
+  26 directions (slides, spins and their combinations) at three scales, from the finest
+  move to 16 times it, each lifted by a quarter resolution, must all collide; a probe that
+  gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
+  A probe that the near-active patches prove hopeless by a wide margin is not queried.
+- the envelope: the climb may not leave it (D6); where the envelope holds (a config's
+  soft-tissue stand-in), the move is kept inside and a rest on its boundary is
+  reported as constrained.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import itertools
+import math
+import time
+
+import numpy as np
+
+from kneeseat_core.status import Status
+from kneeseat_core.typed import Floats, Pose
+from .hull import min_norm_point
+from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
+
+__all__ = ['run_climb']
+
+# A move must deliver this share of the gain its slope promised, measured to an eighth of
+# the promise, or it is undone (so a slope the normals promise but the surfaces do not have
+# is never followed far; a move to the crest of a smooth slope keeps half its promise).
+PROMISE = 0.25
+# The finest contact tolerance a move measures its gain with, in resolutions.
+FINEST_TOL = 1.0 / 1024.0
+# Probe scales, in finest moves (the finest move: one resolution of slide, or a spin
+# whose arc at the farthest vertex is one rotation resolution).
+PROBE_SCALES = (1.0, 4.0, 16.0)
+# A probe succeeds when the moved body is still free lifted by this many resolutions.
+PROBE_LIFT = 0.25
+# Before probing, the pose's contact bracket is narrowed to this many resolutions.
+FINE_PROBE = 1.0 / 64.0
+# A probe that the near-active patches' first-order model says loses more than this many
+# resolutions (beyond the lift) is not sent to python-fcl, per probe scale: normals would
+# have to be off by tens of degrees, or the surface fold over within the probe, to hide a
+# gain behind such a loss.
+HOPELESS_RESOLUTIONS = {1.0: 1.0, 4.0: 1.0, 16.0: 5.0}
+# The longest single move, in translation steps.
+MAX_MOVE_STEPS = 4.0
+# Before rest is probed, the contact bracket is narrowed to this fraction of the tolerance,
+# so that a patch only near contact (it would balance the hull by itself) drops out.
+FINE = 0.25
+
+_DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)])
+_DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
+
+
+@dataclass(slots=True, eq=False)
+class _Climb:
+    """The state of one climb and its four steps."""
+
+    search: Search
+    pose: Pose                 # at contact: free, within `tol` of touching
+    touching: Pose             # `pose` moved along Δ until it touches
+    floor: Contacts            # contact patches at `touching`
+    arm: float                 # m of arc per radian of spin (the farthest vertex)
+    tol: float                 # exact-contact tolerance along Δ (m)
+    flat: float                # slope at or below which the contacts count as balanced
+    finest: float              # the finest move (m of slide or arc)
+    step: float                # length of the next move (m)
+    best: float                # deepest depth reached so far (m along Δ)
+    learned: Contacts          # blocking patches taught by a rejected move
+    proof_checks: int = 0
+    proof_s: float = 0.0
+    stalled_at: Pose | None = None   # where the climb last ran out of moves
+    ended: tuple[int, str] | None = None   # (Status code, reason) once the climb must stop
+    trusted: bool = False      # the last measured move kept its promise (see `move`)
+
+    def _moved_since_stall(self) -> bool:
+        """True unless the pose is within one finest move of where the climb last stalled."""
+        if self.stalled_at is None:
+            return True
+        s = self.search
+        d = s.centre(self.pose) - s.centre(self.stalled_at)
+        slide = float(np.linalg.norm(d - (d @ s.push) * s.push))
+        rel = self.pose[:3, :3] @ self.stalled_at[:3, :3].T
+        spin = math.acos(max(-1.0, min(1.0, 0.5 * (float(np.trace(rel)) - 1.0))))
+        return slide + spin * self.arm > self.finest
+
+    def resume(self) -> tuple[Floats, float] | None:
+        """When the contacts balance or the step ran out: narrow the contact set, or restart
+        a fresh slope with the finest step - at most once per place, so a kink (a wedge
+        whose walls take turns in a narrow contact set) ends in the proof instead of a cycle.
+        """
+        if not self._moved_since_stall():
+            return None
+        self.stalled_at = self.pose
+        if self.step >= 0.25 * self.finest and not self.sharpen():
+            return None
+        chosen = self.choose()
+        if chosen is not None:
+            self.step = max(self.step, self.finest)
+        return chosen
+
+    # ---- first-order model ---------------------------------------------------------
+    def gradients(self, contacts: Contacts, pose: Pose | None = None) -> Floats:
+        """Depth gradient (k, 3) of each facing patch w.r.t. (slide e1, slide e2, arc), for
+        the body at `pose` (default: the current pose)."""
+        s = self.search
+        pose = self.pose if pose is None else pose
+        facing = s.facing(contacts, s.push)
+        if len(facing) == 0:
+            return np.zeros((0, 3))
+        n, pts = facing.normals, facing.points
+        lever = np.cross(s.push, pts - s.centre(pose)) / self.arm
+        down = -(n @ s.push)
+        return np.stack([n @ s.e1, n @ s.e2, np.einsum('ij,ij->i', n, lever)], 1) \
+            * s.free / down[:, None]
+
+    def _mask(self, direction: Floats) -> Floats:
+        """Where the envelope holds: `direction` without the parts that leave it."""
+        return self.search.envelope_mask(self.pose, self.finest, self.arm, direction)
+
+    def _room(self, direction: Floats, length: float) -> float:
+        """The longest move along `direction` (up to `length`) that stays inside."""
+        return self.search.limit_to_envelope(self.pose, self.arm, direction, length)
+
+    # ---- the four steps ---------------------------------------------------------------
+    def choose(self) -> tuple[Floats, float] | None:
+        """The steepest admissible move (unit direction, slope), or None when balanced.
+
+        Contacts learned from a rejected move (D2) that balance the floor are dropped
+        again: they were the same slope seen past its crest, not a new wall, and the
+        shortened step along the floor's own direction finds the crest instead.
+        """
+        for contacts in ((self.floor + self.learned, self.floor) if len(self.learned)
+                         else (self.floor,)):
+            grads = self.gradients(contacts)
+            if len(grads) == 0:
+                return None
+            d = self._mask(min_norm_point(grads))
+            norm = float(np.linalg.norm(d))
+            if norm > self.flat:
+                direction = d / norm
+                slope = float(np.min(grads @ direction))
+                if slope > 0.0:
+                    return direction, slope
+        self.learned = Contacts.empty()
+        return self.pivot()
+
+    def pivot(self) -> tuple[Floats, float] | None:
+        """D1b: the hull balances only because one patch sits at its own crest (its normal
+        along Δ, so its gradient vanishes): a smooth crest does not hold the body there to
+        first order. Pin that patch's point and spin about it, the way that gains at every
+        other patch; None when that gains nowhere (or two crests pin the body)."""
+        s = self.search
+        facing = s.facing(self.floor, s.push)
+        grads = self.gradients(facing)
+        if len(grads) < 2 or not s.free[0]:
+            return None
+        flat = np.linalg.norm(grads, axis=1) <= 2.0 * self.flat
+        if int(flat.sum()) != 1:
+            return None
+        lever = np.cross(s.push, facing.points[flat][0] - s.centre(self.pose))
+        spin = np.array([-(lever @ s.e1) / self.arm, -(lever @ s.e2) / self.arm, 1.0])
+        spin = self._mask(spin / np.linalg.norm(spin))
+        norm = float(np.linalg.norm(spin))
+        if norm == 0.0:
+            return None
+        spin /= norm
+        for direction in (spin, -spin):
+            slope = float(np.min(grads[~flat] @ direction))
+            if slope > self.flat:
+                return direction, slope
+        return None
+
+    def sharpen(self) -> bool:
+        """Narrow the contact bracket to `FINE` of the tolerance; True when the contact set
+        changed (a patch that was only near contact drops out and no longer balances)."""
+        s = self.search
+        fine = self.tol * FINE
+        gap = s.depth(self.touching) - s.depth(self.pose)
+        if gap <= fine:
+            return False
+        lo, hi = s.bisect_along(self.pose, 0.0, gap, fine)
+        self.pose = translated(self.pose, lo * s.push)
+        self.touching = translated(self.pose, (hi - lo) * s.push)
+        before = len(self.floor)
+        self.floor = s.patches(self.touching)
+        self.best = max(self.best, s.depth(self.pose))
+        return len(self.floor) != before
+
+    def move(self, direction: Floats, slope: float) -> None:
+        """One line-search step along `direction` (sets `ended` when the climb must stop).
+
+        A move is kept only if it delivers `PROMISE` of the gain its slope promised,
+        measured: one query asks whether the moved body, lifted by that much (plus what
+        the current pose's own bracket leaves open), is still free. The current bracket is
+        narrowed first to an eighth of the promise, so a promise of a few micrometres is
+        held to a fraction of one and a promise of a millimetre to a quarter resolution.
+        A promise too small to measure is taken on trust (it only has to not lose depth),
+        and only while the last measured promise was kept: normals that promised a slope
+        the surfaces do not have are not followed through the flats they stand on.
+        """
+        s = self.search
+        length = self._room(direction, self.step)
+        if length < 0.25 * self.finest:
+            self.step = 0.0
+            return
+        promised = length * slope
+        floor_tol = FINEST_TOL * s.params.resolution_m
+        tau = min(self.tol, max(0.125 * promised, floor_tol))
+        width = self._narrow(tau)
+        target = s.lateral(self.pose, length * direction, self.arm)
+        measured = promised >= 8.0 * floor_tol
+        if not (measured or self.trusted):
+            self.step = 0.5 * length
+            return
+        kept = PROMISE * promised + width if measured else -width
+        lifted = translated(target, kept * s.push)
+        if s.collides(lifted):
+            # the move kept less than its promise: past the crest, a contact the patches
+            # did not know (D2: learn it, so that the next direction respects it), or a
+            # slope the normals promise but the surfaces do not have; shorten it
+            floor = s.patches(lifted)
+            grads = self.gradients(floor, target)
+            new_slope = float(np.min(grads @ direction)) if len(grads) else 0.0
+            blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
+            facing = s.facing(floor, s.push)
+            self.learned = self.learned + Contacts(facing.points[blocking],
+                                                   facing.normals[blocking])
+            if measured and new_slope >= 0.5 * slope:
+                # nothing blocks and the normals there still promise the slope (this is
+                # no overshoot of a crest): the surfaces do not have that slope
+                self.trusted = False
+            self.step = length * min(self._crest(slope, new_slope, shrink=0.25), 0.5)
+            return
+        bracket = s.touch(lifted, max(promised - kept, 0.0), tau, free_at_start=True)
+        if bracket is None:
+            self.ended = (Status.LOST, LOST_CONTACT)
+            return
+        floor = self._floor_at(bracket.free)
+        grads = self.gradients(floor, bracket.free)
+        new_slope = float(np.min(grads @ direction)) if len(grads) else slope
+        if measured:
+            self.trusted = True           # the surfaces kept a measured promise
+        self._arrive(bracket, floor)
+        if new_slope >= 0.5 * slope:
+            self.step = min(2.0 * length, MAX_MOVE_STEPS * s.params.step_m)
+        else:
+            self.step = length * self._crest(slope, new_slope, shrink=0.25)
+
+    def _floor_at(self, free: Pose) -> Contacts:
+        """The contact patches within the contact tolerance of the free pose `free` (the
+        near-active set, whatever precision the pose itself was measured to)."""
+        s = self.search
+        return s.patches(translated(free, self.tol * s.push))
+
+    def _narrow(self, tau: float) -> float:
+        """Narrow the current pose's contact bracket to at most `tau` (the patches stay);
+        return its width."""
+        s = self.search
+        gap = s.depth(self.touching) - s.depth(self.pose)
+        if gap <= tau:
+            return gap
+        lo, hi = s.bisect_along(self.pose, 0.0, gap, tau)
+        self.touching = translated(self.pose, hi * s.push)
+        self.pose = translated(self.pose, lo * s.push)
+        self.best = max(self.best, s.depth(self.pose))
+        return hi - lo
+
+    def _arrive(self, bracket: Bracket, floor: Contacts) -> None:
+        """Take the pose of `bracket`; outside the search envelope the climb ends."""
+        s = self.search
+        self.pose, self.touching, self.floor = bracket.free, bracket.touching, floor
+        self.learned = Contacts.empty()
+        self.best = max(self.best, s.depth(self.pose))
+        outside = None if s.params.envelope_holds else s.beyond_envelope(self.pose)
+        if outside:
+            self.ended = (Status.ENVELOPE, outside)
+
+    @staticmethod
+    def _crest(slope: float, new_slope: float, shrink: float) -> float:
+        """Fraction of the last move at which the slope would reach zero (secant)."""
+        if new_slope >= slope:
+            return 1.0
+        return min(max(slope / (slope - new_slope), shrink), 1.0)
+
+    def prove(self) -> bool:
+        """D5: probe around the pose; True when a probe gained (and was followed, or the
+        climb ended), False at rest."""
+        s = self.search
+        lift = PROBE_LIFT * s.params.resolution_m
+        checks_before, started = s.pair.checks, time.perf_counter()
+        # the pose's own bracket is narrowed first, so a probe free at the lift has gained
+        # at least the lift less a sliver: every probe that succeeds is real progress
+        self._narrow(FINE_PROBE * s.params.resolution_m)
+        grads = self.gradients(self.floor)
+        directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
+        model = np.min(grads @ directions.T, axis=0) if len(grads) \
+            else np.zeros(len(directions))
+        order = np.argsort(-model)                       # most promising first
+        try:
+            for scale in PROBE_SCALES:
+                length = scale * self.finest
+                # the near-active patches bound the travel after the probe by
+                # tol + length * model (plus curvature); where that is short of the lift by
+                # a wide margin, the probe cannot gain: no query needed
+                margin = HOPELESS_RESOLUTIONS[scale] * s.params.resolution_m
+                hopeless = length * model < lift - self.tol - margin
+                for d in directions[order[~hopeless[order]]]:
+                    if s.params.envelope_holds and \
+                            self._room(d, length) < length:
+                        continue
+                    cand = s.lateral(self.pose, length * d, self.arm)
+                    if s.collides(translated(cand, lift * s.push)):
+                        continue
+                    self._follow(d, length, lift)
+                    return True
+        finally:
+            self.proof_checks += s.pair.checks - checks_before
+            self.proof_s += time.perf_counter() - started
+        return False
+
+    def _follow(self, direction: Floats, length: float, lift: float) -> None:
+        """A probe gained: follow its direction outward while it keeps gaining (a pattern
+        move), and continue from the best pose found."""
+        s = self.search
+        best: Bracket | None = None
+        while True:
+            target = s.lateral(self.pose, length * direction, self.arm)
+            bracket = s.touch(translated(target, lift * s.push), 0.0, self.tol)
+            if bracket is None:
+                if best is None:
+                    self.ended = (Status.LOST, LOST_CONTACT)
+                    return
+                break
+            if best is not None and s.depth(bracket.free) <= s.depth(best.free) + self.tol:
+                break
+            best = bracket
+            grown = self._room(direction, 2.0 * length)
+            if grown <= length or grown > MAX_MOVE_STEPS * s.params.step_m:
+                break
+            length = grown
+        self._arrive(best, self._floor_at(best.free))
+        self.step = max(self.step, 2.0 * self.finest)
+
+
+def run_climb(search: Search, bracket: Bracket) -> SettleResult:
+    """Climb from the first exact contact `bracket` to a rest pose (module docstring)."""
+    p = search.params
+    arm = max(search.pair.moving.reach, p.step_m)
+    rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
+        else p.resolution_m / arm
+    tol = p.resolution_m / 4.0
+    finest = min(p.resolution_m, rot_res * arm)
+    # a slope that cannot gain one resolution across the whole envelope is flat
+    flat = p.resolution_m / max(p.max_slide_m, p.max_spin_rad * arm)
+    climb = _Climb(search, bracket.free, bracket.touching, search.patches(bracket.touching),
+                   arm, tol, flat, finest, p.step_m, search.depth(bracket.free),
+                   Contacts.empty())
+    while climb.ended is None and search.iterations < p.max_iterations:
+        search.iterations += 1
+        chosen = climb.choose() if climb.step >= 0.25 * finest else None
+        if chosen is None:
+            chosen = climb.resume()
+        if chosen is not None:
+            climb.move(*chosen)
+        elif not climb.prove():
+            bound = (search.on_boundary(climb.pose, climb.finest, climb.arm)
+                     if p.envelope_holds else None)
+            climb.ended = (
+                (Status.CONSTRAINED, f'rest on the envelope boundary ({bound}): nothing inside '
+                 'the envelope gains more than the resolution along the push') if bound else
+                (Status.REST, 'rest: no slide, spin about the push or combination, short or '
+                 'long, gains more than the resolution along the push'))
+    status, reason = climb.ended or (
+        Status.CAP, f'iteration cap ({p.max_iterations}) reached before rest was verified')
+    return search.result(climb.pose, status, reason, climb.floor,
+                         proof_checks=climb.proof_checks, proof_s=climb.proof_s)
