@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import read_table
 from machine import describe_machine, load_average
 
 REPO = Path(__file__).resolve().parents[1]

@@ -31,10 +31,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from kneeseat_core.sweep.build import materialise_default_knee
+from kneeseat_core.knee import materialise_default_knee
 from kneeseat_core.sweep.cluster import dask_executor
-from kneeseat_core.knee.config import KneeConfig, load_config
-from kneeseat_core.sweep.chains import process_executor, sweep, SweepResult
+from kneeseat_core.knee import KneeConfig, load_config
+from kneeseat_core.sweep import process_executor, sweep, SweepResult
 from machine import describe_machine
 
 

@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.serialization import serialize_message
 
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_core.table.io import read_table, write_table
+    from kneeseat_core.table import read_table, write_table
     from kneeseat_ros.cdr import (decode_joint_state, encode_joint_state, PoseStampedWriter,
                                   serialize)
     from kneeseat_ros.conversions import (angles_from_joint_state, angles_from_joints, joint_state,

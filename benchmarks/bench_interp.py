@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable
 from machine import describe_machine
 
 

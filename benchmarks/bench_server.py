@@ -164,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
-    from kneeseat_core.table.io import read_table, write_table
+    from kneeseat_core.table import read_table, write_table
     from kneeseat_ros.conversions import AttitudeDecoder, angles_from_pose_stamped
     from kneeseat_ros.conversions import pose_stamped_for_attitude, stamp_from_ns
 

@@ -22,9 +22,8 @@ import time
 
 import numpy as np
 
-from kneeseat_core.meshes.collision import RigidBody
+from kneeseat_core.meshes import load_mesh, RigidBody
 from kneeseat_core.geometry import pose_from, rotation_about
-from kneeseat_core.meshes.load import load_mesh
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 from machine import describe_machine
 

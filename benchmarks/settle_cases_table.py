@@ -31,9 +31,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'test'))
 
-from kneeseat_core.cli.main import main as cli_main  # noqa: E402
+from kneeseat_core.cli import main as cli_main  # noqa: E402
 from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix  # noqa: E402
-from kneeseat_core.referee.judge import Referee  # noqa: E402
+from kneeseat_core.referee import Referee  # noqa: E402
 from kneeseat_core.settle import settle, SettleParams  # noqa: E402
 import settle_cases as sc  # noqa: E402
 

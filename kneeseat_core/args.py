@@ -8,10 +8,12 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterable, Sequence
 import math
+import os
 from typing import NoReturn, TYPE_CHECKING
 
 __all__ = ['EXIT_OK', 'EXIT_ERROR', 'EXIT_BAD_INPUT', 'EXIT_NOT_CONVERGED',
-           'EXIT_NO_CONTACT', 'OneLineParser', 'vector3', 'angles', 'join_negative_values']
+           'EXIT_NO_CONTACT', 'OneLineParser', 'vector3', 'angles', 'join_negative_values',
+           'default_workers']
 
 EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_NO_CONTACT = 0, 1, 2, 3, 4
 
@@ -68,3 +70,11 @@ def join_negative_values(argv: Sequence[str], flags: Iterable[str]) -> list[str]
         out.append(arg)
         i += 1
     return out
+
+
+def default_workers() -> int:
+    """All cores this process may use: the default of every `--workers` option."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1

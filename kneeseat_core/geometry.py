@@ -32,8 +32,8 @@ from scipy.spatial.transform import Rotation
 from .errors import ConfigError
 from .typed import Floats, Pose, Vec3
 
-__all__ = ['Tolerances', 'TOL', 'unit', 'rotation_about', 'pose_from', 'rotation_angle',
-           'quat_from_matrix', 'matrix_from_quat', 'KneeAxes']
+__all__ = ['Tolerances', 'TOL', 'unit', 'rotation_about', 'pose_from', 'carried',
+           'rotation_angle', 'quat_from_matrix', 'matrix_from_quat', 'KneeAxes']
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,6 +120,13 @@ def pose_from(rotation: Floats, translation: Floats) -> Pose:
     pose[:3, :3] = rotation
     pose[:3, 3] = translation
     return pose
+
+
+def carried(pose: Pose, from_attitude: Floats, attitude: Floats) -> Pose:
+    """`pose` (4, 4), taken at the attitude `from_attitude` (3, 3), turned by the change of
+    attitude to `attitude` (3, 3): the same pose relative to the joint."""
+    turn = attitude @ from_attitude.T
+    return pose_from(turn @ pose[:3, :3], turn @ pose[:3, 3])
 
 
 def rotation_angle(a: Floats, b: Floats) -> float:

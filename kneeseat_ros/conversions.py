@@ -30,7 +30,7 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
 
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, TOL
-from kneeseat_core.table.format import display_paths
+from kneeseat_core.table import display_paths
 from kneeseat_core.typed import Floats, Pose as PoseArray
 from .errors import BadInputError
 

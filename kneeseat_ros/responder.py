@@ -23,7 +23,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from kneeseat_core.errors import NonFiniteError, OutOfRangeError
-from kneeseat_core.table.pose_table import Lookup
+from kneeseat_core.table import Lookup
 from .cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state, encode_pose_stamped,
                   PoseStampedWriter)
 from .conversions import angles_from_joints, angles_from_orientation, quat_xyzw, rigid_from_fields

@@ -15,8 +15,7 @@ import numpy as np
 from rclpy.publisher import Publisher
 
 from kneeseat_core.errors import TableError
-from kneeseat_core.table.io import read_table
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable, read_table
 from .cdr import PoseStampedWriter, TfWriter
 from .conversions import AttitudeDecoder, display_mesh_paths
 

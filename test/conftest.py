@@ -147,8 +147,8 @@ def synthetic_table(seed: int = 0, bodies: tuple[str, ...] = ('tibia', 'patella'
     apart). Two cells of the last body are marked not converged.
     """
     from kneeseat_core.geometry import KneeAxes, quat_from_matrix
-    from kneeseat_core.table.pose_table import PoseTable
-    from kneeseat_core.table.format import SCHEMA
+    from kneeseat_core.table import PoseTable
+    from kneeseat_core.table import SCHEMA
     rng = np.random.default_rng(seed)
     axes = KneeAxes.from_vectors([0, 0, 1], [1, 0, 0], [0, 1, 0])
     flexion = np.radians(np.linspace(*flexion_deg))
@@ -182,7 +182,7 @@ def synthetic_table(seed: int = 0, bodies: tuple[str, ...] = ('tibia', 'patella'
 
 def write_synthetic_table(path: Path, **kwargs: Any) -> Path:
     """Write `synthetic_table(**kwargs)` to `path` with the core's writer; returns path."""
-    from kneeseat_core.table.io import write_table
+    from kneeseat_core.table import write_table
     write_table(path, synthetic_table(**kwargs))
     return path
 

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 import shapes
-from kneeseat_core.meshes.collision import RigidBody
+from kneeseat_core.meshes import RigidBody
 from kneeseat_core.geometry import pose_from, rotation_about
 
 TILT_DEG = 8.0

@@ -16,10 +16,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from kneeseat_core.sweep.build import materialise_default_knee
-from kneeseat_core.cli.main import main
+from kneeseat_core.knee import materialise_default_knee
+from kneeseat_core.cli import main
 from kneeseat_core.errors import TableError
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import read_table
 
 GRID = ('--flexion-grid', '0,-90,30', '--varus-grid', '-10,10,10')
 
@@ -142,7 +142,7 @@ def test_verify_judges_only_the_cells_claimed_at_rest(built: tuple[Path, Path], 
     from dataclasses import replace
 
     from kneeseat_core.status import Status
-    from kneeseat_core.table.io import with_hash, write_table
+    from kneeseat_core.table import with_hash, write_table
     table = read_table(built[0])
     converged = np.array(table.converged, dtype=bool)
     codes = np.array(table.status)
@@ -172,7 +172,7 @@ def test_verify_says_where_the_meshes_went(built: tuple[Path, Path], tmp_path: P
 def test_one_grid_override_keeps_the_other_axis_of_the_config(tmp_path: Path) -> None:
     """`--flexion-grid` alone: the varus grid is the config's, bit for bit (it used to be
     rebuilt from degrees, one unit in the last place off), and the settle section stays."""
-    from kneeseat_core.knee.config import load_config
+    from kneeseat_core.knee import load_config
     config = materialise_default_knee(tmp_path)
     base = load_config(config)
     only_flexion = load_config(config, overrides={'grid': {'flexion_deg': [0.0, -90.0, 30.0]}})

@@ -21,17 +21,15 @@ from distributed import Client, KilledWorker, LocalCluster
 import numpy as np
 import pytest
 
-from kneeseat_core.sweep.build import make_table, materialise_default_knee
-from kneeseat_core.cli.main import main
+from kneeseat_core.knee import materialise_default_knee
+from kneeseat_core.cli import main
 from kneeseat_core.sweep.cluster import _forward, dask_executor, worker_stats
 from kneeseat_core.errors import ConfigError, KneeseatError, MeshError
 from kneeseat_core.geometry import pose_from
-from kneeseat_core.knee.config import KneeConfig, load_config
-from kneeseat_core.sweep.scene import SceneSpec
-from kneeseat_core.sweep.chains import ChainJob, run_chain, sweep
+from kneeseat_core.knee import KneeConfig, load_config
+from kneeseat_core.sweep import ChainJob, make_table, run_chain, SceneSpec, sweep
 from kneeseat_core.files import file_sha256
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import PoseTable, read_table
 
 FLEXION = '0,-90,10'
 VARUS = '-10,10,5'

@@ -17,7 +17,7 @@ from conftest import install_env, write_synthetic_table
 import pytest
 from test_table_server import assert_answer, Probe, ServerProcess
 
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import read_table
 from kneeseat_ros.conversions import joint_state
 
 pytestmark = pytest.mark.ros

@@ -23,8 +23,7 @@ import yaml
 
 from kneeseat_core.geometry import matrix_from_quat
 from kneeseat_core.report.plots import SESSION_SIZE_PX
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import PoseTable, read_table
 from kneeseat_ros.demos.demo import main, PLOT_NAME
 from kneeseat_ros.demos.demo_table import demo_bag, prepare_table
 from kneeseat_ros.bag.replay import load_messages

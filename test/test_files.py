@@ -7,7 +7,7 @@ from typing import BinaryIO
 
 import pytest
 
-from kneeseat_core.sweep.build import materialise_default_knee
+from kneeseat_core.knee import materialise_default_knee
 from kneeseat_core.files import atomic_write, file_sha256, write_bytes
 
 

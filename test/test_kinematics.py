@@ -13,15 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kneeseat_core.cli.main import main
+from kneeseat_core.cli import main
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import quat_from_matrix, rotation_about
-from kneeseat_core.report.kinematics import knee_kinematics, Landmarks, landmarks
-from kneeseat_core.report.kinematics_report import (kinematics_markdown, plot_kinematics,
-                                                    read_reference)
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.format import SCHEMA
-from kneeseat_core.table.io import write_table
+from kneeseat_core.report import (kinematics_markdown, knee_kinematics, Landmarks, landmarks,
+                                  plot_kinematics, read_reference)
+from kneeseat_core.table import PoseTable, SCHEMA, write_table
 
 X, Y, Z = np.eye(3)
 KNEE_DEG = np.arange(0.0, 91.0, 15.0)          # knee flexion; the grid holds its negative

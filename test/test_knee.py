@@ -24,17 +24,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kneeseat_core.sweep.build import materialise_default_knee
-from kneeseat_core.cli.main import main
-from kneeseat_core.meshes.collision import RigidBody
+from kneeseat_core.knee import materialise_default_knee
+from kneeseat_core.cli import main
+from kneeseat_core.meshes import load_mesh, RigidBody
 from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_angle
-from kneeseat_core.knee.config import BodySpec, KneeConfig, load_config
-from kneeseat_core.meshes.load import load_mesh
+from kneeseat_core.knee import BodySpec, KneeConfig, load_config
 from kneeseat_core.settle import settle
-from kneeseat_core.sweep.chains import warm_start
-from kneeseat_core.referee.judge import Referee
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.io import read_table, write_table
+from kneeseat_core.sweep import warm_start
+from kneeseat_core.referee import Referee
+from kneeseat_core.table import PoseTable, read_table, write_table
 from kneeseat_core.typed import Floats
 
 MAX_STEP_MM = 1.0           # Show list: adjacent cells differ by <= 1 mm ...

@@ -128,9 +128,9 @@ def test_gait_bag_with_joint_states(tmp_path: Path) -> None:
 
 
 def test_table_axes(tmp_path: Path) -> None:
-    from kneeseat_core.table.pose_table import PoseTable
-    from kneeseat_core.table.format import SCHEMA
-    from kneeseat_core.table.io import write_table
+    from kneeseat_core.table import PoseTable
+    from kneeseat_core.table import SCHEMA
+    from kneeseat_core.table import write_table
     axes = {'flexion': [1.0, 0.0, 0.0], 'varus': [0.0, 0.0, 1.0], 'long': [0.0, 1.0, 0.0]}
     meta = {'schema': SCHEMA, 'kneeseat_version': '0', 'axes': axes,
             'reference': {'name': 'femur', 'frame': 'femur_ref', 'mesh': 'f.stl',

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from kneeseat_core.errors import MeshError
-from kneeseat_core.meshes.load import check_mesh, load_mesh
+from kneeseat_core.meshes import check_mesh, load_mesh
 
 FORMATS = ('stl', 'ply', 'obj', 'off', 'glb')
 # a tetrahedron, 10 mm edges along the axes, outward winding (closed, watertight)

@@ -21,17 +21,15 @@ import trimesh
 
 from conftest import REPO
 import shapes
-from kneeseat_core.sweep.build import build_table, materialise_default_knee
-from kneeseat_core.cli.main import main
+from kneeseat_core.knee import materialise_default_knee
+from kneeseat_core.cli import main
 from kneeseat_core.errors import ConfigError, TableError
 from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import matrix_from_quat, rotation_about
-from kneeseat_core.knee.config import load_config
-from kneeseat_core.sweep.chains import InlineExecutor
+from kneeseat_core.knee import load_config
+from kneeseat_core.sweep import build_table, InlineExecutor
 from kneeseat_core.cli.table_commands import _table_meshes
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.io import read_table
-from kneeseat_core.table.summary import describe
+from kneeseat_core.table import describe, PoseTable, read_table
 
 MM = 1e-3
 RADIUS, BOWL_R, DEPTH = 8 * MM, 16 * MM, 12 * MM

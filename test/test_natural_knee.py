@@ -22,12 +22,11 @@ import trimesh
 import yaml
 
 from conftest import fcl_collides, fcl_object, REPO, SHARED_DATA
-from kneeseat_core.cli.main import main
+from kneeseat_core.cli import main
 from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_about
 from kneeseat_core.report.kinematics import knee_kinematics, table_landmarks
-from kneeseat_core.knee.config import KneeConfig, load_config
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.io import read_table
+from kneeseat_core.knee import KneeConfig, load_config
+from kneeseat_core.table import PoseTable, read_table
 
 DATA = SHARED_DATA / 'natural_knee'
 CONFIG = REPO / 'config' / 'natural_knee.yaml'

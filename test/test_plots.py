@@ -18,7 +18,7 @@ from kneeseat_core.report.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PAN
                                         PNG_KEY_NONCONVERGED, plot_convergence_map, plot_table)
 from kneeseat_core.report.render import render_table, RENDER_EXTRA_IN, RENDER_PANEL_IN
 from kneeseat_core.status import Status
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable
 
 # TKA knee frame: X anterior, Y superior, Z lateral; flexion about Z, varus about X.
 AXES = {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0], 'long': [0.0, 1.0, 0.0]}

@@ -23,10 +23,10 @@ import pytest
 import trimesh
 
 from conftest import REPO
-from kneeseat_core.cli.main import main
-from kneeseat_core.meshes.collision import RigidBody
+from kneeseat_core.cli import main
+from kneeseat_core.meshes import RigidBody
 from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix, rotation_about
-from kneeseat_core.referee.judge import Envelope, Referee
+from kneeseat_core.referee import Envelope, Referee
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 from kneeseat_core.status import Status
 import settle_cases as sc

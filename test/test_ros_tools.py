@@ -25,7 +25,7 @@ from test_table_server import ServerProcess
 from test_tracker import rigid
 import yaml
 
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import read_table
 from kneeseat_ros.demos.tracker_demo import (example_registration, expected_world, leg_motion,
                                              pose_matrix, registration_yaml)
 

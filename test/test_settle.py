@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kneeseat_core.cli.main import main
-from kneeseat_core.meshes.collision import CollisionPair
+from kneeseat_core.cli import main
+from kneeseat_core.meshes import CollisionPair
 from kneeseat_core.geometry import pose_from, quat_from_matrix, rotation_about
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 import settle_cases as sc

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from kneeseat_core.cli.main import main
+from kneeseat_core.cli import main
 
 JSON_KEYS = {'converged', 'reason', 'pose', 'iterations', 'collision_checks', 'contacts',
              'elapsed_s'}

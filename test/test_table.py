@@ -23,9 +23,8 @@ from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, NonFini
                                   OutOfRangeError, TableError)
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_angle
 from kneeseat_core.files import file_sha256
-from kneeseat_core.table.pose_table import arrays_sha256, PoseTable
-from kneeseat_core.table.format import SCHEMA
-from kneeseat_core.table.io import read_table, with_hash, write_table
+from kneeseat_core.table import (arrays_sha256, PoseTable, read_table, SCHEMA, with_hash,
+                                 write_table)
 from kneeseat_core.table.summary import CSV_COLUMNS, describe, export_csv, lookup_json
 
 # TKA knee frame: X anterior, Y superior, Z lateral -> flexion about Z, varus about X.

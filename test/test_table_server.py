@@ -33,8 +33,7 @@ import yaml
 
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import matrix_from_quat
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import PoseTable, read_table
 from kneeseat_ros.conversions import (joint_state, pose_stamped, pose_stamped_for_attitude,
                                       stamp_from_ns, stamp_ns)
 from kneeseat_ros.table_server import main, STATUS_NAME, TableServer
@@ -214,7 +213,7 @@ def test_answers_equal_core_interpolation_and_markers(tmp_path: Path, domain_id:
     for name in ('femur', *BODIES):
         (mesh_dir / f'{name}.stl').write_bytes(b'solid x\nendsolid x\n')
     path = tmp_path / 'knee.npz'
-    from kneeseat_core.table.io import write_table
+    from kneeseat_core.table import write_table
     write_table(path, synthetic_table(seed=2, mesh_dir=mesh_dir))
     table = read_table(path)
     srv = ServerProcess(tmp_path, domain_id, path, 'publish_markers:=true',

@@ -22,14 +22,12 @@ import pytest
 import trimesh
 
 from conftest import fcl_collides, fcl_object, REPO, SHARED_DATA
-from kneeseat_core.cli.main import main
-from kneeseat_core.sweep.continuity import continuity
+from kneeseat_core.cli import main
+from kneeseat_core.sweep import continuity
 from kneeseat_core.geometry import matrix_from_quat, pose_from
-from kneeseat_core.knee.config import KneeConfig, load_config
+from kneeseat_core.knee import KneeConfig, load_config
 from kneeseat_core.status import AT_REST, Status
-from kneeseat_core.table.pose_table import PoseTable
-from kneeseat_core.table.io import read_table
-from kneeseat_core.table.summary import status_map
+from kneeseat_core.table import PoseTable, read_table, status_map
 from kneeseat_core.typed import Floats, Pose
 
 TKA = SHARED_DATA / 'tka_dm'

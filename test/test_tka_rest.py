@@ -17,10 +17,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from kneeseat_core.meshes.collision import RigidBody
+from kneeseat_core.meshes import load_mesh, RigidBody
 from kneeseat_core.geometry import pose_from, rotation_about
-from kneeseat_core.meshes.load import load_mesh
-from kneeseat_core.referee.judge import Referee
+from kneeseat_core.referee import Referee
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 
 TKA = SHARED_DATA / 'tka_dm'

@@ -24,7 +24,7 @@ import yaml
 
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import quat_from_matrix
-from kneeseat_core.table.io import read_table
+from kneeseat_core.table import read_table
 from kneeseat_ros.conversions import pose_stamped, stamp_from_ns, stamp_ns
 from kneeseat_ros.tracker import compose, inverse, load_registration, Pairer, relative_rotation
 from kneeseat_ros.demos.tracker_demo import (example_registration, expected_world, leg_motion,

@@ -15,8 +15,7 @@ import numpy as np
 
 from kneeseat_core.args import angles, EXIT_OK, vector3
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat
-from kneeseat_core.table.io import read_table
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable, read_table
 
 if TYPE_CHECKING:
     import trimesh
@@ -27,7 +26,7 @@ __all__ = ['register_commands']
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from kneeseat_core.table.summary import describe, status_map
+    from kneeseat_core.table import describe, status_map
     table = read_table(args.table)
     print(describe(table))
     if args.map:
@@ -36,7 +35,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_lookup(args: argparse.Namespace) -> int:
-    from kneeseat_core.table.summary import lookup_json
+    from kneeseat_core.table import lookup_json
     table = read_table(args.table)
     flexion, varus = math.radians(args.flexion_deg), math.radians(args.varus_deg)
     result = table.interpolate(flexion, varus, args.out_of_range)
@@ -57,7 +56,7 @@ def _cmd_lookup(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from kneeseat_core.table.summary import export_csv
+    from kneeseat_core.table import export_csv
     export_csv(read_table(args.table), args.csv)
     print(f'wrote {args.csv}')
     return EXIT_OK
@@ -68,8 +67,8 @@ def _table_meshes(table: PoseTable, display: bool) -> dict[str, trimesh.Trimesh]
 
     A body with several meshes (e.g. a tibia's bone and menisci) is drawn as their union.
     """
-    from kneeseat_core.meshes.load import load_meshes
-    from kneeseat_core.table.format import display_paths, mesh_entries
+    from kneeseat_core.meshes import load_meshes
+    from kneeseat_core.table import display_paths, mesh_entries
     meta = table.metadata
     units = meta.get('config', {}).get('units', 'm')
     return {entry['name']: load_meshes(display_paths(entry) if display
@@ -78,7 +77,7 @@ def _table_meshes(table: PoseTable, display: bool) -> dict[str, trimesh.Trimesh]
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from kneeseat_core.report.plots import plot_convergence_map, plot_table
+    from kneeseat_core.report import plot_convergence_map, plot_table
     if args.map:
         out = plot_convergence_map(read_table(args.table), args.out)
         print(f'wrote {out}')
@@ -89,7 +88,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from kneeseat_core.report.render import render_table
+    from kneeseat_core.report import render_table
     table = read_table(args.table)
     out = render_table(table, _table_meshes(table, not args.implants), args.out,
                        flexion_deg=args.flexion_deg, view=args.view)
@@ -100,9 +99,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_kinematics(args: argparse.Namespace) -> int:
     from kneeseat_core.report.kinematics import (DEFAULT_ANGLES_DEG, knee_kinematics,
                                                  table_landmarks)
-    from kneeseat_core.report.kinematics_report import (kinematics_markdown, plot_kinematics,
-                                                        read_reference, write_kinematics_csv)
-    from kneeseat_core.table.summary import write_text
+    from kneeseat_core.report import (kinematics_markdown, plot_kinematics, read_reference,
+                                      write_kinematics_csv)
+    from kneeseat_core.table import write_text
     table = read_table(args.table)
     names = dict(tibia=args.tibia, patella=args.patella)
     marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,

@@ -44,7 +44,7 @@ import yaml
 
 from kneeseat_core.errors import ConfigError, SettleError, TableError
 from kneeseat_core.geometry import KneeAxes, pose_from, rotation_about, TOL, unit
-from kneeseat_core.meshes.load import UNIT_SCALE, Units
+from kneeseat_core.meshes import UNIT_SCALE, Units
 from kneeseat_core.params import SettleParams
 from kneeseat_core.typed import Floats, Pose
 

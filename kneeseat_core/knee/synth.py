@@ -50,6 +50,8 @@ from __future__ import annotations
 
 import functools
 import hashlib
+from importlib import resources
+import os
 from pathlib import Path
 
 import numpy as np
@@ -60,7 +62,8 @@ from kneeseat_core.typed import Floats, Ints
 from .solids import polar_solid, smooth_max, smoothstep, soft_cap, superellipse_scale
 
 __all__ = ['DEFAULT_PUSH', 'PATELLA_FLEXION_FRACTION', 'default_knee', 'write_default_knee',
-           'stl_bytes', 'NEUTRAL_GAP_MM', 'MEDIAL_CONDYLE_Z_MM', 'LATERAL_CONDYLE_Z_MM']
+           'stl_bytes', 'NEUTRAL_GAP_MM', 'MEDIAL_CONDYLE_Z_MM', 'LATERAL_CONDYLE_Z_MM',
+           'DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee']
 
 DEFAULT_PUSH = {'tibia': (0.0, 1.0, 0.0), 'patella': (-1.0, 0.0, 0.0)}
 """Unit push direction of each moving body at neutral (femur frame): tibia up, patella back."""
@@ -395,3 +398,26 @@ def _same_file(path: Path, data: bytes) -> bool:
     if path.stat().st_size != len(data):
         return False
     return file_sha256(path) == hashlib.sha256(data).hexdigest()
+
+
+DEFAULT_CONFIG = 'default_knee.yaml'
+
+
+def default_knee_dir() -> Path:
+    """Where the embedded default knee's meshes are written (a per-user cache)."""
+    base = Path(os.environ.get('XDG_CACHE_HOME', Path.home() / '.cache'))
+    return base / 'kneeseat' / 'default_knee'
+
+
+def materialise_default_knee(out_dir: Path | None = None) -> Path:
+    """Write the default knee's meshes and config into `out_dir`; return the config path.
+
+    Generation is deterministic, so existing files are reused when their bytes match.
+    """
+    out_dir = default_knee_dir() if out_dir is None else Path(out_dir)
+    write_default_knee(out_dir)
+    config = out_dir / DEFAULT_CONFIG
+    text = resources.files('kneeseat_core').joinpath('data', DEFAULT_CONFIG).read_text()
+    if not config.is_file() or config.read_text() != text:
+        write_bytes(config, text.encode())
+    return config

@@ -1,1 +1,8 @@
-"""TODO."""
+"""Triangle meshes in metres: loading and validating them, and the rigid bodies python-fcl
+queries (`load`: files to checked trimesh meshes; `collision`: BVHs, per-triangle centres
+and normals, boolean and contact queries)."""
+from .collision import CollisionPair, RigidBody
+from .load import check_mesh, check_mesh_files, load_mesh, load_meshes, UNIT_SCALE, Units
+
+__all__ = ['Units', 'UNIT_SCALE', 'load_mesh', 'load_meshes', 'check_mesh', 'check_mesh_files',
+           'RigidBody', 'CollisionPair']

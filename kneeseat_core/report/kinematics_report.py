@@ -17,7 +17,7 @@ from matplotlib.figure import Figure
 import numpy as np
 
 from kneeseat_core.errors import ConfigError
-from kneeseat_core.table.summary import write_text
+from kneeseat_core.table import write_text
 from .kinematics import KneeKinematics, QUANTITIES
 
 __all__ = ['kinematics_rows', 'kinematics_markdown', 'write_kinematics_csv',

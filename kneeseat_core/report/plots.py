@@ -37,8 +37,7 @@ from kneeseat_core.errors import ConfigError
 from kneeseat_core.files import atomic_write
 from kneeseat_core.geometry import matrix_from_quat, TOL
 from kneeseat_core.status import Status, STATUS_NAMES
-from kneeseat_core.table.format import mesh_entries
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import mesh_entries, PoseTable
 from kneeseat_core.typed import Bools, Floats
 
 __all__ = ['DPI', 'PLOT_PANEL_IN', 'PLOT_EXTRA_IN', 'SESSION_SIZE_PX', 'MARKER_RGB',

@@ -25,7 +25,7 @@ import trimesh
 
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import matrix_from_quat, TOL, unit
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable
 from kneeseat_core.typed import Floats, Ints
 from .plots import (checked_png_path, DPI, finite_angles, outside_grid, PNG_KEY_NONCONVERGED,
                     PNG_KEY_TABLE, table_name, write_png)

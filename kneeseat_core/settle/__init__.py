@@ -52,7 +52,7 @@ from __future__ import annotations
 import numpy as np
 
 from kneeseat_core.errors import NoContactError
-from kneeseat_core.meshes.collision import CollisionPair, RigidBody
+from kneeseat_core.meshes import CollisionPair, RigidBody
 from kneeseat_core.params import Method, SettleParams
 from kneeseat_core.typed import Pose
 from .climb import run_climb

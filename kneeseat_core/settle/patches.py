@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from kneeseat_core.geometry import TOL
-from kneeseat_core.meshes.collision import RigidBody
+from kneeseat_core.meshes import RigidBody
 from kneeseat_core.typed import Floats, Ints
 
 __all__ = ['PATCH_SPREAD_RAD', 'contact_patches']

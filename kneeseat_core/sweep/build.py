@@ -1,77 +1,36 @@
-"""`kneeseat build` and `kneeseat synth`: from a knee config to a verified table file."""
+"""From a knee config to a table: sweep it, package the result with its provenance, write it.
+
+`make_table` turns a `SweepResult` into a `PoseTable` whose metadata records where every
+number came from (meshes and their SHA-256, the config as read and as resolved, the settle
+parameters, each cell's status, the continuity summary, each body's envelope anchor);
+`build_table` sweeps and writes it atomically; `summary_line` and `backed_out_lines` are
+what `kneeseat build` prints of it.
+"""
 from __future__ import annotations
 
-import argparse
 from concurrent.futures import Executor
-from contextlib import contextmanager
 from dataclasses import asdict
 from datetime import datetime, timezone
-from importlib import resources
 import logging
 import math
-import os
 from pathlib import Path
 import sys
-from typing import Any, Callable, Iterator, TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from kneeseat_core.errors import ConfigError
-from kneeseat_core.files import file_sha256, write_bytes
+from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import quat_from_matrix
-from kneeseat_core.knee.config import BodySpec, grid_values, KneeConfig, load_config
+from kneeseat_core.knee import BodySpec, KneeConfig
 from kneeseat_core.status import STATUS_NAMES
-from kneeseat_core.table.io import write_table
-from kneeseat_core.table.pose_table import PoseTable
-from .chains import default_workers, process_executor, sweep, SweepResult
+from kneeseat_core.table import PoseTable, write_table
 from .continuity import continuity
+from .phases import sweep, SweepResult
 
-if TYPE_CHECKING:
-    from kneeseat_core.args import Subcommands
-
-__all__ = ['DEFAULT_CONFIG', 'default_knee_dir', 'materialise_default_knee', 'build_table',
-           'make_table', 'register_commands', 'executor_for',
-           'backed_out_lines']
+__all__ = ['make_table', 'build_table', 'summary_line', 'backed_out_lines']
 
 log = logging.getLogger(__name__)
-
-DEFAULT_CONFIG = 'default_knee.yaml'
-
-
-def default_knee_dir() -> Path:
-    """Where the embedded default knee's meshes are written (a per-user cache)."""
-    base = Path(os.environ.get('XDG_CACHE_HOME', Path.home() / '.cache'))
-    return base / 'kneeseat' / 'default_knee'
-
-
-def materialise_default_knee(out_dir: Path | None = None) -> Path:
-    """Write the default knee's meshes and config into `out_dir`; return the config path.
-
-    Generation is deterministic, so existing files are reused when their bytes match.
-    """
-    from kneeseat_core.knee.synth import write_default_knee
-    out_dir = default_knee_dir() if out_dir is None else Path(out_dir)
-    write_default_knee(out_dir)
-    config = out_dir / DEFAULT_CONFIG
-    text = resources.files('kneeseat_core').joinpath('data', DEFAULT_CONFIG).read_text()
-    if not config.is_file() or config.read_text() != text:
-        write_bytes(config, text.encode())
-    return config
-
-
-def executor_for(workers: int, scheduler: str | None) -> tuple[Executor, Callable[[], None]]:
-    """The executor a build runs on, and how to close it.
-
-    Args:
-        workers: process-pool size (ignored with a scheduler).
-        scheduler: Dask scheduler address (tcp://HOST:PORT), or None for local processes.
-    """
-    if scheduler:
-        from .cluster import dask_executor
-        return dask_executor(scheduler)
-    executor = process_executor(workers)
-    return executor, lambda: executor.shutdown(wait=True, cancel_futures=True)
 
 
 def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
@@ -179,106 +138,3 @@ def summary_line(table: PoseTable, out: Path) -> str:
                  f'{cont["bound_deg"]:g} deg, {len(cont["branch_changes"])} of them branch '
                  'changes between cells at rest')
     return line
-
-
-@contextmanager
-def _closing(close: Callable[[], None]) -> Iterator[None]:
-    try:
-        yield
-    finally:
-        close()
-
-
-def _cmd_build(args: argparse.Namespace) -> int:
-    configs = args.config or [None]
-    outs: list[Path]
-    if len(configs) == 1:
-        outs = [args.out]
-    else:
-        if args.out.suffix:
-            raise ConfigError(f'--out {args.out}: with several configs give a directory; '
-                              'each table is named after its config')
-        outs = [args.out / f'{Path(c).stem}.npz' for c in configs]
-    loaded = []
-    for path in configs:
-        cfg_path = materialise_default_knee() if path is None else Path(path)
-        mesh_dir = None if path is not None else cfg_path.parent
-        if args.mesh_dir is not None:
-            mesh_dir = args.mesh_dir
-        overrides: dict[str, Any] = {}
-        given = (('flexion_deg', args.flexion_grid), ('varus_deg', args.varus_grid))
-        grid = {key: value for key, value in given if value is not None}
-        if grid:
-            overrides['grid'] = grid
-        if args.method is not None:
-            overrides['settle'] = {'method': args.method}
-        loaded.append(load_config(cfg_path, mesh_dir, overrides or None))
-    for out in outs:
-        if not out.parent.is_dir():
-            out.parent.mkdir(parents=True, exist_ok=True)
-    executor, close = executor_for(args.workers, args.scheduler)
-    totals = {'cells': 0, 'converged': 0, 'wall_s': 0.0}
-    with _closing(close):
-        for config, out in zip(loaded, outs):
-            table = build_table(config, out, executor, show_progress=not args.quiet)
-            print(summary_line(table, out))
-            s = table.metadata['summary']
-            totals['cells'] += s['cells']
-            totals['converged'] += s['converged']
-            totals['wall_s'] += s['wall_s']
-            for line in backed_out_lines(table):
-                print(line)
-            for reason in table.metadata.get('failures', []):
-                print(f'  not converged: {reason}')
-    if len(loaded) > 1:
-        print(f'all {len(loaded)} tables: {totals["cells"]} cells, '
-              f'{100 * totals["converged"] / max(totals["cells"], 1):.1f}% converged, '
-              f'{totals["wall_s"]:.1f} s wall')
-    return 0
-
-
-def _grid_arg(text: str) -> list[float]:
-    parts = text.replace(',', ' ').split()
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not START,STOP,STEP in degrees") from None
-    if len(values) != 3:
-        raise argparse.ArgumentTypeError(f"'{text}' is not START,STOP,STEP in degrees")
-    try:
-        grid_values(values, 'grid')
-    except ConfigError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-    return values
-
-
-def _cmd_synth(args: argparse.Namespace) -> int:
-    config = materialise_default_knee(args.out)
-    print(f'wrote the default knee to {args.out} (meshes and {config.name})')
-    return 0
-
-
-def register_commands(sub: Subcommands) -> None:
-    """Add `build` and `synth` to the `kneeseat` subcommand parser."""
-    p = sub.add_parser('build', help='settle a knee over its range of motion into a table')
-    p.add_argument('config', nargs='*', type=Path,
-                   help='knee config YAML (none: the embedded default knee; several: a batch '
-                   'sharing one executor)')
-    p.add_argument('--out', type=Path, required=True,
-                   help='table file (.npz), or a directory when several configs are given')
-    p.add_argument('--workers', type=int, default=default_workers(),
-                   help=f'worker processes (default: all cores, here {default_workers()})')
-    p.add_argument('--scheduler', metavar='tcp://HOST:PORT',
-                   help='run the sweep on a Dask distributed cluster instead')
-    p.add_argument('--mesh-dir', type=Path, help='directory that holds the config meshes')
-    p.add_argument('--flexion-grid', type=_grid_arg, metavar='START,STOP,STEP',
-                   help='override the flexion grid (degrees)')
-    p.add_argument('--varus-grid', type=_grid_arg, metavar='START,STOP,STEP',
-                   help='override the varus grid (degrees)')
-    p.add_argument('--method', choices=('default', 'patent'), help='override the settle method')
-    p.add_argument('--quiet', action='store_true', help='no progress bar')
-    p.set_defaults(command=_cmd_build)
-
-    p = sub.add_parser('synth', help='write the embedded default knee (meshes + config)')
-    p.add_argument('--out', type=Path, required=True, help='output directory')
-    p.set_defaults(command=_cmd_synth)

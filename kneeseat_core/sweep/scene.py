@@ -13,8 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import threading
 
-from kneeseat_core.meshes.collision import RigidBody
-from kneeseat_core.meshes.load import load_meshes, Units
+from kneeseat_core.meshes import load_meshes, RigidBody, Units
 
 __all__ = ['SceneSpec', 'scene_bodies', 'register_mesh_copy', 'scene_builds']
 

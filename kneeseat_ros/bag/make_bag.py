@@ -231,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         table_sha256 = table_path = ''
         frame = 'femur'
         if args.table is not None:
-            from kneeseat_core.table.io import read_table
+            from kneeseat_core.table import read_table
             table = read_table(args.table)
             axes, frame = table.axes, table.reference_frame
             table_sha256, table_path = table.sha256, str(args.table)

@@ -18,7 +18,7 @@ from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 
 from kneeseat_core.geometry import matrix_from_quat
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable
 from kneeseat_core.typed import Floats
 from kneeseat_ros import topics
 from kneeseat_ros.conversions import stamp_ns

@@ -48,11 +48,11 @@ import sys
 import time
 from typing import Any, IO
 
+from kneeseat_core.args import default_workers
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import TOL
 from kneeseat_core.report import plots
-from kneeseat_core.sweep.chains import default_workers
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable
 from kneeseat_ros.bag.session import POSE_TOPIC, read_session, SessionStats, table_deviation
 from kneeseat_ros.demos.children import (child_env, DiagnosticsMonitor, last_line, sigterm_unwinds,
                                          Stop, stop_child)

@@ -13,10 +13,10 @@ import numpy as np
 
 from kneeseat_core.errors import ConfigError, KneeseatError, MeshError, TableError
 from kneeseat_core.geometry import TOL
-from kneeseat_core.knee.config import KneeConfig, load_config
-from kneeseat_core.sweep.build import build_table, executor_for, materialise_default_knee
-from kneeseat_core.table.io import read_table
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.knee import KneeConfig, load_config
+from kneeseat_core.knee import materialise_default_knee
+from kneeseat_core.sweep import build_table, executor_for
+from kneeseat_core.table import PoseTable, read_table
 from kneeseat_ros.errors import DataMissing
 
 __all__ = ['KNEES', 'NATURAL_CONFIG', 'SHIPPED_BAG', 'DEFAULT_STEP_DEG', 'prepare_table',

@@ -41,8 +41,7 @@ import yaml
 from kneeseat_core.errors import KneeseatError
 from kneeseat_core.geometry import KneeAxes
 from kneeseat_core.report.plots import write_png
-from kneeseat_core.table.io import read_table
-from kneeseat_core.table.pose_table import PoseTable
+from kneeseat_core.table import PoseTable, read_table
 from kneeseat_core.typed import Floats, Poses
 from kneeseat_ros import topics
 from kneeseat_ros.conversions import display_mesh_paths
@@ -326,7 +325,7 @@ def _mesh_points(table: PoseTable, table_path: Path,
     a table whose meshes are not on this machine is drawn with frames only.
     """
     from kneeseat_core.errors import MeshError
-    from kneeseat_core.meshes.load import load_meshes
+    from kneeseat_core.meshes import load_meshes
     meta = table.metadata
     units = meta.get('config', {}).get('units', 'm')
     points = []
