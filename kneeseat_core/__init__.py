@@ -9,6 +9,7 @@ def kneeseat_version() -> str:
 
     Tables record it; a Dask build checks that every worker runs the same one.
     """
+    # importlib.metadata scans the installed distributions: only tables and Dask builds ask
     from importlib.metadata import PackageNotFoundError, version
     try:
         return version('kneeseat_ros')

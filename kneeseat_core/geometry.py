@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
 
 from .errors import ConfigError
 from .typed import Floats, Pose, Vec3
@@ -132,6 +131,9 @@ def carried(pose: Pose, from_attitude: Floats, attitude: Floats) -> Pose:
 def rotation_angle(a: Floats, b: Floats) -> float:
     """Angle (rad) of the rotation taking (3, 3) rotation `a` to `b` (scipy's Rotation:
     accurate near 0, where the arccos of the trace loses half the digits)."""
+    # scipy.spatial costs about half a second of start-up, which the node and the table
+    # commands (they never call this) do without
+    from scipy.spatial.transform import Rotation
     return float(Rotation.from_matrix(np.asarray(a).T @ np.asarray(b)).magnitude())
 
 

@@ -3,7 +3,9 @@ embedded default knee written out.
 
 `build` loads each config (none: the embedded default knee), applies the grid and method
 overrides, sweeps them on one executor and prints one summary per table
-(`kneeseat_core.sweep.build`). Ctrl-C stops cleanly and leaves no table file.
+(`kneeseat_core.sweep.build`). Ctrl-C stops cleanly and leaves no table file. The knee
+and the sweep load trimesh and python-fcl (about 2 s): the handlers import them, so that
+`kneeseat --help` and the other commands start without.
 """
 from __future__ import annotations
 
@@ -14,8 +16,6 @@ from typing import Any, Callable, Iterator, TYPE_CHECKING
 
 from kneeseat_core.args import default_workers
 from kneeseat_core.errors import ConfigError
-from kneeseat_core.knee import grid_values, load_config, materialise_default_knee
-from kneeseat_core.sweep import backed_out_lines, build_table, executor_for, summary_line
 
 if TYPE_CHECKING:
     from kneeseat_core.args import Subcommands
@@ -32,6 +32,8 @@ def _closing(close: Callable[[], None]) -> Iterator[None]:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
+    from kneeseat_core.knee import load_config, materialise_default_knee     # trimesh
+    from kneeseat_core.sweep import backed_out_lines, build_table, executor_for, summary_line
     configs = args.config or [None]
     outs: list[Path]
     if len(configs) == 1:
@@ -87,6 +89,7 @@ def _grid_arg(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"'{text}' is not START,STOP,STEP in degrees") from None
     if len(values) != 3:
         raise argparse.ArgumentTypeError(f"'{text}' is not START,STOP,STEP in degrees")
+    from kneeseat_core.knee import grid_values       # trimesh, only with this option
     try:
         grid_values(values, 'grid')
     except ConfigError as err:
@@ -95,6 +98,7 @@ def _grid_arg(text: str) -> list[float]:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
+    from kneeseat_core.knee import materialise_default_knee     # trimesh
     config = materialise_default_knee(args.out)
     print(f'wrote the default knee to {args.out} (meshes and {config.name})')
     return 0

@@ -1,7 +1,10 @@
 """`kneeseat info | lookup | export | plot | render | kinematics`: commands that read a table.
 
 Each handler takes the parsed arguments and returns the exit code; errors are
-`KneeseatError`s, which `kneeseat_core.cli.main.main` turns into one line on stderr.
+`KneeseatError`s, which `kneeseat_core.cli.main` turns into one line on stderr. The table
+commands need only numpy and the table package; the pictures import matplotlib and the
+meshes trimesh inside their handlers (about 1 and 2 s of start-up that info, lookup and
+export do without).
 """
 from __future__ import annotations
 
@@ -15,7 +18,8 @@ import numpy as np
 
 from kneeseat_core.args import angles, EXIT_OK, vector3
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat
-from kneeseat_core.table import PoseTable, read_table
+from kneeseat_core.table import (describe, display_paths, export_csv, lookup_json, mesh_entries,
+                                 PoseTable, read_table, status_map, write_text)
 
 if TYPE_CHECKING:
     import trimesh
@@ -26,7 +30,6 @@ __all__ = ['register_commands']
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from kneeseat_core.table import describe, status_map
     table = read_table(args.table)
     print(describe(table))
     if args.map:
@@ -35,7 +38,6 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_lookup(args: argparse.Namespace) -> int:
-    from kneeseat_core.table import lookup_json
     table = read_table(args.table)
     flexion, varus = math.radians(args.flexion_deg), math.radians(args.varus_deg)
     result = table.interpolate(flexion, varus, args.out_of_range)
@@ -56,7 +58,6 @@ def _cmd_lookup(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from kneeseat_core.table import export_csv
     export_csv(read_table(args.table), args.csv)
     print(f'wrote {args.csv}')
     return EXIT_OK
@@ -67,8 +68,7 @@ def _table_meshes(table: PoseTable, display: bool) -> dict[str, trimesh.Trimesh]
 
     A body with several meshes (e.g. a tibia's bone and menisci) is drawn as their union.
     """
-    from kneeseat_core.meshes import load_meshes
-    from kneeseat_core.table import display_paths, mesh_entries
+    from kneeseat_core.meshes import load_meshes         # trimesh: start-up
     meta = table.metadata
     units = meta.get('config', {}).get('units', 'm')
     return {entry['name']: load_meshes(display_paths(entry) if display
@@ -77,7 +77,7 @@ def _table_meshes(table: PoseTable, display: bool) -> dict[str, trimesh.Trimesh]
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from kneeseat_core.report import plot_convergence_map, plot_table
+    from kneeseat_core.report import plot_convergence_map, plot_table     # matplotlib
     if args.map:
         out = plot_convergence_map(read_table(args.table), args.out)
         print(f'wrote {out}')
@@ -88,7 +88,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from kneeseat_core.report import render_table
+    from kneeseat_core.report import render_table                         # matplotlib
     table = read_table(args.table)
     out = render_table(table, _table_meshes(table, not args.implants), args.out,
                        flexion_deg=args.flexion_deg, view=args.view)
@@ -97,11 +97,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_kinematics(args: argparse.Namespace) -> int:
-    from kneeseat_core.report.kinematics import (DEFAULT_ANGLES_DEG, knee_kinematics,
-                                                 table_landmarks)
-    from kneeseat_core.report import (kinematics_markdown, plot_kinematics, read_reference,
-                                      write_kinematics_csv)
-    from kneeseat_core.table import write_text
+    from kneeseat_core.report import (DEFAULT_ANGLES_DEG, kinematics_markdown,  # matplotlib
+                                      knee_kinematics, plot_kinematics, read_reference,
+                                      table_landmarks, write_kinematics_csv)
     table = read_table(args.table)
     names = dict(tibia=args.tibia, patella=args.patella)
     marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,

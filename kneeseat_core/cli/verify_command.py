@@ -4,7 +4,8 @@ One settle result (`--fixed/--moving/--push/--pose`, the pose as `kneeseat settl
 prints it or as a START.json), or the cells of a table (`kneeseat_core.referee.cells`). For
 each pose the referee climbs the travel and reports what it gains and the move that gains
 it. Exit 0 only when no converged cell gains more than the resolution; 3 when one does; 2 on
-bad input.
+bad input. The referee loads trimesh, python-fcl and scipy's optimiser (about 3 s): the
+handlers import it, so that `kneeseat --help` and the other commands start without.
 """
 from __future__ import annotations
 
@@ -20,19 +21,15 @@ from tqdm import tqdm
 
 from kneeseat_core.args import default_workers, EXIT_NOT_CONVERGED, EXIT_OK, vector3
 from kneeseat_core.errors import ConfigError, MeshError, NoContactError, TableError
-from kneeseat_core.knee import config_from_metadata
-from kneeseat_core.meshes import check_mesh_files, load_mesh
 from kneeseat_core.params import SettleParams
-from kneeseat_core.referee import (CellVerdict, mesh_file, Referee, sample_cells, Verdict,
-                                   verify_table)
 from kneeseat_core.status import AT_REST
-from kneeseat_core.sweep import executor_for
 from kneeseat_core.table import read_table
 from kneeseat_core.typed import Pose
 from .settle_command import load_start_pose
 
 if TYPE_CHECKING:
     from kneeseat_core.args import Subcommands
+    from kneeseat_core.referee import CellVerdict
 
 __all__ = ['register_command']
 
@@ -47,7 +44,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
 
 def _verify_table_cmd(args: argparse.Namespace) -> int:
-    # the workers load trimesh and python-fcl; the executors module is light
+    from kneeseat_core.knee import config_from_metadata                      # trimesh
+    from kneeseat_core.meshes import check_mesh_files
+    from kneeseat_core.referee import mesh_file, sample_cells, verify_table  # fcl, scipy
+    from kneeseat_core.sweep import executor_for
     if args.fixed or args.moving or args.pose:
         raise TableError('give either a TABLE or --fixed/--moving/--pose, not both')
     if args.sample is not None and args.sample < 1:
@@ -105,6 +105,8 @@ def _read_pose(path: Path) -> Pose:
 
 
 def _verify_one_cmd(args: argparse.Namespace) -> int:
+    from kneeseat_core.meshes import load_mesh                               # trimesh
+    from kneeseat_core.referee import Referee                                # fcl, scipy
     if not (args.fixed and args.moving and args.pose):
         raise ConfigError('give a TABLE, or --fixed, --moving and --pose for one settle result')
     pose = _read_pose(args.pose)
@@ -112,7 +114,7 @@ def _verify_one_cmd(args: argparse.Namespace) -> int:
     referee = Referee([load_mesh(args.fixed, args.units)], [load_mesh(args.moving, args.units)],
                       push, args.resolution)
     try:
-        verdict: Verdict = referee.judge(pose)
+        verdict = referee.judge(pose)
     except NoContactError:
         raise ConfigError(f'{args.pose}: the pose has no contact along the push '
                           f'{push.tolist()}; check --push and the pose') from None

@@ -54,7 +54,8 @@ import trimesh
 from kneeseat_core.errors import ConfigError, MeshError, TableError
 from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import matrix_from_quat, TOL, unit
-from kneeseat_core.table import Lookup, PoseTable
+from kneeseat_core.meshes import load_mesh
+from kneeseat_core.table import Lookup, mesh_entries, PoseTable
 from kneeseat_core.typed import Bools, Floats, Vec3
 
 __all__ = ['QUANTITIES', 'DEFAULT_ANGLES_DEG', 'Side', 'Landmarks', 'KneeKinematics',
@@ -146,8 +147,6 @@ def table_landmarks(table: PoseTable, *, tibia: str | None = 'tibia',
         MeshError: a recorded mesh is missing or unreadable.
         TableError: a recorded mesh no longer has the SHA-256 the table was built with.
     """
-    from kneeseat_core.meshes import load_mesh
-    from kneeseat_core.table import mesh_entries
     entries = {b['name']: b for b in table.metadata['bodies']}
     units = (table.metadata.get('config') or {}).get('units', 'm')
 

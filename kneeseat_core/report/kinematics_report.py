@@ -19,6 +19,7 @@ import numpy as np
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.table import write_text
 from .kinematics import KneeKinematics, QUANTITIES
+from .plots import DPI, MARKER_RGB, write_png
 
 __all__ = ['kinematics_rows', 'kinematics_markdown', 'write_kinematics_csv',
            'read_reference', 'plot_kinematics']
@@ -119,7 +120,6 @@ def plot_kinematics(kin: KneeKinematics, out: Path, *, title: str,
         others: more tables' kinematics to draw as dashed lines, by label (their
             non-converged cells are left out of the line).
     """
-    from .plots import DPI, MARKER_RGB, write_png
     quantities = [q for q in QUANTITIES if q in kin.values]
     cols = 4
     rows = -(-len(quantities) // cols)
