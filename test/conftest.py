@@ -4,10 +4,12 @@ Import helpers with `from conftest import spin_until, ros_env, synthetic_table` 
 this directory on sys.path). ROS tests get their own ROS_DOMAIN_ID per test, discovery
 limited to this machine, and AMENT_PREFIX_PATH including the venv (the ROS wheels keep their
 ament index there), so plain `python -m pytest` works without sourcing scripts/env.sh.
+`synthetic_table` is the one builder of synthetic pose tables: the grid, bodies, pose
+model, converged flags, statuses and metadata are its parameters.
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 import fcntl
 import hashlib
 import itertools
@@ -136,48 +138,123 @@ def spin_until(executor: Any, done: Callable[[], bool], timeout_s: float = 10.0,
         executor.spin_once(timeout_sec=0.02)
 
 
-def synthetic_table(seed: int = 0, bodies: tuple[str, ...] = ('tibia', 'patella'),
+# A pose model for `synthetic_table`: (flexion, varus) on the (F, V) grid (rad) and the
+# table's seeded rng -> (rotations (B, F, V, 3, 3), positions (B, F, V, 3) m).
+PoseModel = Callable[[np.ndarray, np.ndarray, np.random.Generator],
+                     tuple[np.ndarray, np.ndarray]]
+Cell = tuple[int, int, int]          # (body, flexion index, varus index); negatives from the end
+# TKA knee frame: X anterior, Y superior, Z lateral; flexion about Z, varus about X.
+TKA_AXES = {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0], 'long': [0.0, 1.0, 0.0]}
+
+
+def _smooth_poses(n: int, offset_m: float) -> PoseModel:
+    """The default pose model: a smooth screw-home r = 0.2 sin(flexion) plus N(0, 0.02) rad
+    noise about the long axis, positions smooth plus N(0, 1 mm) noise, `offset_m` on x."""
+    def poses(f: np.ndarray, v: np.ndarray,
+              rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        from kneeseat_core.geometry import KneeAxes
+        axes = KneeAxes.from_vectors(TKA_AXES['flexion'], TKA_AXES['varus'], TKA_AXES['long'])
+        rotation = 0.2 * np.sin(f)[None] + rng.normal(0.0, 0.02, (n, *f.shape))  # (B, F, V)
+        rot = axes.orientation(np.broadcast_to(f, rotation.shape).ravel(),
+                               np.broadcast_to(v, rotation.shape).ravel(), rotation.ravel())
+        position = np.stack([0.01 * np.sin(f) + offset_m, -0.005 * np.cos(f), 0.02 * v], -1)
+        position = position[None] + rng.normal(0.0, 1e-3, (n, *f.shape, 3))
+        return rot.reshape(n, *f.shape, 3, 3), position
+    return poses
+
+
+def _entry(body: str | Mapping[str, Any], mesh_dir: Path | None,
+           moving: bool = True) -> dict[str, Any]:
+    """A body's metadata entry: a name gets frame = name, mesh `mesh_dir/<name>.stl` (None
+    without `mesh_dir`), no mesh hash and, for a moving body, no display mesh; a mapping is
+    merged over that."""
+    given = {'name': body} if isinstance(body, str) else dict(body)
+    name = given['name']
+    default = {'name': name, 'frame': name,
+               'mesh': str(mesh_dir / f'{name}.stl') if mesh_dir else None, 'mesh_sha256': ''}
+    if moving:
+        default['display_mesh'] = None
+    return {**default, **given}
+
+
+def synthetic_table(seed: int = 0,
+                    bodies: Sequence[str | Mapping[str, Any]] = ('tibia', 'patella'),
                     flexion_deg: tuple[float, float, int] = (-90.0, 0.0, 19),
                     varus_deg: tuple[float, float, int] = (-10.0, 10.0, 5),
-                    offset_m: float = 0.0, mesh_dir: Path | None = None) -> Any:
-    """A PoseTable on a uniform grid with smooth, seeded poses (TKA axes, frame 'femur').
+                    offset_m: float = 0.0, mesh_dir: Path | None = None, *,
+                    flexion_rad: Any = None, varus_rad: Any = None,
+                    poses: PoseModel | None = None,
+                    nonconverged: Iterable[Cell] = ((-1, 1, 1), (-1, -2, -1)),
+                    statuses: Mapping[Cell, int] | None = None, iterations: int | None = None,
+                    reference: str | Mapping[str, Any] = 'femur',
+                    meta: Mapping[str, Any] | None = None) -> Any:
+    """The tests' one synthetic PoseTable, built from arrays (TKA axes, `TKA_AXES`).
 
-    Orientation of body b at (f, v) = axes.orientation(f, v, r) with a smooth screw-home r
-    plus seeded noise; positions smooth plus noise (m) and `offset_m` on x (to tell tables
-    apart). Two cells of the last body are marked not converged.
+    Args:
+        seed: seeds the rng of the pose model (noise) and of the iteration counts.
+        bodies: moving bodies, as names or metadata entries (`_entry`), in array order.
+        flexion_deg, varus_deg: uniform grids, `np.linspace(start, stop, count)` in degrees;
+            `flexion_rad`, `varus_rad` (any ascending arrays, rad) replace them when given.
+        offset_m: added to x by the default pose model (to tell tables apart).
+        mesh_dir: the default entries' meshes are `mesh_dir/<name>.stl` (else None).
+        poses: the pose model (`PoseModel`); default `_smooth_poses`.
+        nonconverged: the cells marked not converged (default: two cells of the last body).
+        statuses: when given, each cell's settle status is recorded in the metadata
+            (`cells`): these codes at these cells, REST at the other converged cells,
+            UNKNOWN at the other non-converged ones. A code must agree with the cell's
+            converged flag (`kneeseat_core.status.AT_REST`).
+        iterations: every cell's iteration count; default seeded in 1..49.
+        reference: the fixed body, as a name or a metadata entry (frame = name).
+        meta: top-level metadata keys to set or replace (name, config, summary, ...).
     """
-    from kneeseat_core.geometry import KneeAxes, quat_from_matrix
-    from kneeseat_core.table import PoseTable
-    from kneeseat_core.table import SCHEMA
+    from kneeseat_core.geometry import quat_from_matrix
+    from kneeseat_core.status import AT_REST, Status, STATUS_NAMES
+    from kneeseat_core.table import PoseTable, SCHEMA
+    if poses is not None and offset_m:
+        raise ValueError('offset_m is added by the default pose model; shift your own poses')
     rng = np.random.default_rng(seed)
-    axes = KneeAxes.from_vectors([0, 0, 1], [1, 0, 0], [0, 1, 0])
-    flexion = np.radians(np.linspace(*flexion_deg))
-    varus = np.radians(np.linspace(*varus_deg))
+    flexion = np.radians(np.linspace(*flexion_deg)) if flexion_rad is None else \
+        np.asarray(flexion_rad, dtype=np.float64)
+    varus = np.radians(np.linspace(*varus_deg)) if varus_rad is None else \
+        np.asarray(varus_rad, dtype=np.float64)
     f, v = np.meshgrid(flexion, varus, indexing='ij')                      # (F, V)
     n = len(bodies)
-    rotation = 0.2 * np.sin(f)[None] + rng.normal(0.0, 0.02, (n, *f.shape))  # (B, F, V)
-    quat = quat_from_matrix(axes.orientation(np.broadcast_to(f, rotation.shape).ravel(),
-                                             np.broadcast_to(v, rotation.shape).ravel(),
-                                             rotation.ravel())).reshape(n, *f.shape, 4)
-    position = np.stack([0.01 * np.sin(f) + offset_m, -0.005 * np.cos(f), 0.02 * v], -1)
-    position = position[None] + rng.normal(0.0, 1e-3, (n, *f.shape, 3))
-    converged = np.ones((n, *f.shape), dtype=bool)
-    converged[-1, 1, 1] = converged[-1, -2, -1] = False
-    mesh = (lambda name: str(mesh_dir / f'{name}.stl')) if mesh_dir else (lambda name: None)
-    metadata = {
+    rot, position = (poses or _smooth_poses(n, offset_m))(f, v, rng)
+    shape = (n, *f.shape)
+    assert rot.shape == (*shape, 3, 3) and position.shape == (*shape, 3), \
+        f'pose model gave {rot.shape}, {position.shape} for {shape} cells'
+    quat = quat_from_matrix(rot.reshape(-1, 3, 3)).reshape(*shape, 4)
+    converged = np.ones(shape, dtype=bool)
+    for cell in nonconverged:
+        converged[cell] = False
+    metadata: dict[str, Any] = {
         'schema': SCHEMA, 'kneeseat_version': 'test',
-        'reference': {'name': 'femur', 'frame': 'femur', 'mesh': mesh('femur'),
-                      'mesh_sha256': ''},
-        'bodies': [{'name': b, 'frame': b, 'mesh': mesh(b), 'mesh_sha256': '',
-                    'display_mesh': None} for b in bodies],
-        'axes': {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0],
-                 'long': [0.0, 1.0, 0.0]},
+        'reference': _entry(reference, mesh_dir, moving=False),
+        'bodies': [_entry(b, mesh_dir) for b in bodies],
+        'axes': {key: list(axis) for key, axis in TKA_AXES.items()},
         'config': {}, 'settle': {}, 'arrays_sha256': '', 'built': '2025-01-01T00:00:00Z',
         'summary': {'cells': int(converged.size), 'converged': int(converged.sum()),
                     'wall_s': 0.0, 'collision_checks': 0},
     }
-    return PoseTable(flexion, varus, position, quat, converged,
-                     rng.integers(1, 50, converged.shape), metadata)
+    if statuses is not None:
+        codes = np.where(converged, Status.REST, Status.UNKNOWN)
+        for cell, code in statuses.items():
+            assert (code in AT_REST) == converged[cell], \
+                f'status {code} at {cell} disagrees with converged={converged[cell]}'
+            codes[cell] = code
+        metadata['cells'] = {'status_names': {str(k): name for k, name in STATUS_NAMES.items()},
+                             'status': codes.tolist()}
+    metadata.update(meta or {})
+    counts = rng.integers(1, 50, shape) if iterations is None else np.full(shape, iterations)
+    return PoseTable(flexion, varus, position, quat, converged, counts, metadata)
+
+
+def pixels_near(path: Path, rgb: Sequence[float], tol: float = 0.1) -> int:
+    """How many pixels of the PNG at `path` are within `tol` of colour `rgb` (0..1) in every
+    channel (antialiased edges count only where they are close enough)."""
+    from matplotlib.image import imread
+    image = imread(path)[..., :3]
+    return int((np.abs(image - np.asarray(rgb)) < tol).all(axis=-1).sum())
 
 
 def write_synthetic_table(path: Path, **kwargs: Any) -> Path:

@@ -138,7 +138,7 @@ def test_cli_bad_scheduler_exits_with_one_line(tmp_path: Path,
     code = main(['build', str(knees[0]), '--out', str(tmp_path / 't.npz'),
                  '--scheduler', 'scheduler-host', '--quiet'])
     err = capsys.readouterr().err
-    assert code != 0
+    assert code == 2                                   # bad input (docs/design.md)
     assert err.count('\n') == 1 and 'Traceback' not in err
     assert "--scheduler 'scheduler-host': not a Dask scheduler address" in err
     assert not (tmp_path / 't.npz').exists()

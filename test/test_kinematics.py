@@ -10,15 +10,17 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from matplotlib.colors import to_rgb
 import numpy as np
 import pytest
 
+from conftest import pixels_near, synthetic_table
 from kneeseat_core.cli import main
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.geometry import quat_from_matrix, rotation_about
 from kneeseat_core.report import (kinematics_markdown, knee_kinematics, Landmarks, landmarks,
                                   plot_kinematics, read_reference)
-from kneeseat_core.table import PoseTable, SCHEMA, write_table
+from kneeseat_core.table import PoseTable, write_table
 
 X, Y, Z = np.eye(3)
 KNEE_DEG = np.arange(0.0, 91.0, 15.0)          # knee flexion; the grid holds its negative
@@ -50,26 +52,27 @@ def patella_pose(knee: float) -> tuple[np.ndarray, np.ndarray]:
     return rot, where - rot @ Q
 
 
+def chosen_motions(f: np.ndarray, v: np.ndarray,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """conftest's pose model of these tables: `tibia_pose` and `patella_pose` at each
+    cell's knee flexion (minus the grid's flexion), the same at every varus."""
+    rot, pos = np.empty((2, *f.shape, 3, 3)), np.empty((2, *f.shape, 3))
+    for (i, j), flexion in np.ndenumerate(f):
+        for b, pose in enumerate((tibia_pose, patella_pose)):
+            rot[b, i, j], pos[b, i, j] = pose(-math.degrees(flexion))
+    return rot, pos
+
+
 def synthetic(nonconverged_at: float | None = None,
               knee_deg: np.ndarray = KNEE_DEG) -> PoseTable:
+    """The chosen motions on the grid -knee_deg x varus -5, 0, 5 deg; the tibia's cell at
+    knee flexion `nonconverged_at`, varus 0, not converged."""
     flexion = np.radians(-knee_deg[::-1])
-    varus = np.radians([-5.0, 0.0, 5.0])
-    pos = np.zeros((2, len(flexion), 3, 3))
-    quat = np.zeros((2, len(flexion), 3, 4))
-    for i, f in enumerate(flexion):
-        for b, pose in enumerate((tibia_pose, patella_pose)):
-            rot, t = pose(-math.degrees(f))
-            pos[b, i, :], quat[b, i, :] = t, quat_from_matrix(rot)
-    converged = np.ones((2, len(flexion), 3), dtype=bool)
-    if nonconverged_at is not None:
-        converged[0, int(np.argmin(np.abs(flexion + math.radians(nonconverged_at)))), 1] = False
-    meta = {'schema': SCHEMA, 'name': 'synthetic',
-            'reference': {'name': 'femur', 'frame': 'femur'},
-            'bodies': [{'name': 'tibia', 'frame': 'tibia'},
-                       {'name': 'patella', 'frame': 'patella'}],
-            'axes': {'flexion': [0, 0, 1], 'varus': [1, 0, 0], 'long': [0, 1, 0]}}
-    return PoseTable(flexion, varus, pos, quat, converged,
-                     np.ones(converged.shape, dtype=np.int64), meta)
+    cells = [] if nonconverged_at is None else \
+        [(0, int(np.argmin(np.abs(flexion + math.radians(nonconverged_at)))), 1)]
+    return synthetic_table(flexion_rad=flexion, varus_rad=np.radians([-5.0, 0.0, 5.0]),
+                           poses=chosen_motions, nonconverged=cells, iterations=1,
+                           meta={'name': 'synthetic'})
 
 
 MARKS = Landmarks(P, P - HALF * Z, P + HALF * Z, Q)
@@ -196,6 +199,13 @@ def test_cli_writes_csv_markdown_and_png(tmp_path: Path,
 
 
 def test_plot_draws_other_tables(tmp_path: Path) -> None:
+    """Another table is a dashed orange line, drawn through its converged cells only."""
     kin = knee_kinematics(synthetic(), MARKS)
-    out = plot_kinematics(kin, tmp_path / 'k.png', title='t', others={'other': kin})
-    assert out.stat().st_size > 10_000
+    gappy = knee_kinematics(synthetic(nonconverged_at=45.0), MARKS)
+    orange = to_rgb('tab:orange')                    # the first other table's colour only
+    alone = pixels_near(plot_kinematics(kin, tmp_path / 'alone.png', title='t'), orange)
+    full = pixels_near(plot_kinematics(kin, tmp_path / 'full.png', title='t',
+                                       others={'other': kin}), orange)
+    gap = pixels_near(plot_kinematics(kin, tmp_path / 'gap.png', title='t',
+                                      others={'other': gappy}), orange)
+    assert alone == 0 < gap < 0.9 * full         # the tibial lines break at 45 deg

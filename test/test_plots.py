@@ -1,17 +1,19 @@
 """Pictures of a pose table: PNGs written, sized, marked, and bad arguments refused."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 import time
 from typing import Any, Literal
 
+from matplotlib.colors import to_rgb
 from matplotlib.image import imread
 import numpy as np
 from PIL import Image
 import pytest
 import trimesh
 
-from conftest import SHARED_DATA
+from conftest import pixels_near, SHARED_DATA, synthetic_table, TKA_AXES
 from kneeseat_core.errors import ConfigError, KneeseatError
 from kneeseat_core.geometry import KneeAxes, quat_from_matrix
 from kneeseat_core.report.plots import (DPI, MARKER_RGB, PLOT_EXTRA_IN, PLOT_PANEL_IN,
@@ -20,51 +22,48 @@ from kneeseat_core.report.render import render_table, RENDER_EXTRA_IN, RENDER_PA
 from kneeseat_core.status import Status
 from kneeseat_core.table import PoseTable
 
-# TKA knee frame: X anterior, Y superior, Z lateral; flexion about Z, varus about X.
-AXES = {'flexion': [0.0, 0.0, 1.0], 'varus': [1.0, 0.0, 0.0], 'long': [0.0, 1.0, 0.0]}
+HASHES = {'femur': 'a1b2c3d4' + '0' * 56, 'tibia': 'deadbeef' + '1' * 56,
+          'patella': 'cafef00d' + '2' * 56}
 
 
-def make_table(*, seed: int = 7, flexion_deg: tuple[float, float, int] = (-90.0, 0.0, 19),
-               varus_deg: tuple[float, float, int] = (-10.0, 10.0, 5),
-               nonconverged: int = 0, meta: dict[str, Any] | None = None) -> PoseTable:
-    """A two-body synthetic table: a tibia swinging under the femur, a patella in front.
-
-    The tibia turns about the flexion axis through the femur's centre with a screw-home
-    rotation of 10 deg * flexion / 90 deg; the patella follows at a third of the angle. A
-    seeded jitter of 0.2 mm keeps the curves honest; `nonconverged` random cells of the
-    tibia are flagged.
-    """
-    rng = np.random.default_rng(seed)
-    flexion = np.radians(np.linspace(*flexion_deg))
-    varus = np.radians(np.linspace(*varus_deg))
-    knee = KneeAxes.from_vectors(AXES['flexion'], AXES['varus'], AXES['long'])
-    f, v = np.meshgrid(flexion, varus, indexing='ij')                          # (F, V)
-    n_f, n_v = f.shape
+def swing(f: np.ndarray, v: np.ndarray,
+          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """conftest's pose model of these tables: a tibia swinging under the femur, a patella in
+    front (see `make_table`), with a seeded jitter of 0.2 mm."""
+    knee = KneeAxes.from_vectors(TKA_AXES['flexion'], TKA_AXES['varus'], TKA_AXES['long'])
     tibia_r = knee.orientation(f.ravel(), v.ravel(), np.radians(10.0) * f.ravel() / (np.pi / 2))
     patella_r = knee.orientation(f.ravel() / 3.0, np.zeros(f.size), np.zeros(f.size))
     tibia_p = tibia_r @ np.array([0.0, -0.045, 0.0])                           # (F*V, 3)
     patella_p = patella_r @ np.array([0.040, 0.0, 0.0])
-    position = np.stack([tibia_p, patella_p]).reshape(2, n_f, n_v, 3)
+    position = np.stack([tibia_p, patella_p]).reshape(2, *f.shape, 3)
     position = position + rng.normal(0.0, 2e-4, position.shape)
-    orientation = quat_from_matrix(np.stack([tibia_r, patella_r])).reshape(2, n_f, n_v, 4)
-    converged = np.ones((2, n_f, n_v), dtype=bool)
-    if nonconverged:
-        cells = rng.choice(n_f * n_v, size=nonconverged, replace=False)
-        converged[0].reshape(-1)[cells] = False
-    metadata: dict[str, Any] = {
-        'schema': 'kneeseat.table/1',
-        'name': 'synthetic knee',
-        'reference': {'name': 'femur', 'frame': 'femur', 'mesh': 'femur.stl',
-                      'mesh_sha256': 'a1b2c3d4' + '0' * 56},
-        'bodies': [{'name': 'tibia', 'frame': 'tibia', 'mesh': 'tibia.stl',
-                    'mesh_sha256': 'deadbeef' + '1' * 56, 'display_mesh': None},
-                   {'name': 'patella', 'frame': 'patella', 'mesh': 'patella.stl',
-                    'mesh_sha256': 'cafef00d' + '2' * 56, 'display_mesh': None}],
-        'axes': AXES,
-    }
-    metadata.update(meta or {})
-    return PoseTable(flexion, varus, position, orientation, converged,
-                     np.full((2, n_f, n_v), 12), metadata)
+    return np.stack([tibia_r, patella_r]).reshape(2, *f.shape, 3, 3), position
+
+
+def make_table(*, seed: int = 7, flexion_deg: tuple[float, float, int] = (-90.0, 0.0, 19),
+               varus_deg: tuple[float, float, int] = (-10.0, 10.0, 5),
+               nonconverged: int | Sequence[tuple[int, int, int]] = 0,
+               statuses: dict[tuple[int, int, int], int] | None = None) -> PoseTable:
+    """A two-body synthetic table (conftest's builder): a tibia swinging under the femur, a
+    patella in front.
+
+    The tibia turns about the flexion axis through the femur's centre with a screw-home
+    rotation of 10 deg * flexion / 90 deg; the patella follows at a third of the angle. A
+    seeded jitter of 0.2 mm keeps the curves honest. `nonconverged`: that many seeded
+    random cells of the tibia, or the cells (body, flexion index, varus index) listed, are
+    not converged; `statuses` records settle status codes (conftest's `synthetic_table`).
+    """
+    n_f, n_v = flexion_deg[2], varus_deg[2]
+    if isinstance(nonconverged, int):
+        picked = np.random.default_rng(seed).choice(n_f * n_v, size=nonconverged, replace=False)
+        nonconverged = [(0, *divmod(int(k), n_v)) for k in picked]
+    return synthetic_table(
+        seed, [{'name': b, 'mesh': f'{b}.stl', 'mesh_sha256': HASHES[b]}
+               for b in ('tibia', 'patella')],
+        flexion_deg, varus_deg, poses=swing, nonconverged=nonconverged, statuses=statuses,
+        iterations=12, reference={'name': 'femur', 'mesh': 'femur.stl',
+                                  'mesh_sha256': HASHES['femur']},
+        meta={'name': 'synthetic knee'})
 
 
 def knee_meshes(subdivisions: int = 3) -> dict[str, trimesh.Trimesh]:
@@ -79,9 +78,7 @@ def knee_meshes(subdivisions: int = 3) -> dict[str, trimesh.Trimesh]:
 
 def red_pixels(path: Path) -> int:
     """Pixels of the non-converged marker colour (pure red, within antialiasing)."""
-    rgb = imread(path)[..., :3]
-    target = np.asarray(MARKER_RGB)
-    return int((np.abs(rgb - target) < 0.1).all(axis=-1).sum())
+    return pixels_near(path, MARKER_RGB)
 
 
 def png_text(path: Path) -> dict[str, str]:
@@ -115,10 +112,13 @@ def test_plot_marks_nonconverged_cells(tmp_path: Path) -> None:
 
 
 def test_plot_picks_nearest_varus_and_accepts_a_title(tmp_path: Path) -> None:
-    table = make_table(nonconverged=40)
+    # j + 1 non-converged tibia cells in varus column j: each column counts differently
+    table = make_table(nonconverged=[(0, i, j) for j in range(5) for i in range(j + 1)])
     out = plot_table(table, tmp_path / 'plot.png', varus_deg=[2.0], title='my title')
-    bad = ~table.converged[0][:, 2]                                  # 2 deg -> column 0 deg
-    assert png_text(out)[PNG_KEY_NONCONVERGED] == str(int(bad.sum()))
+    assert png_text(out)[PNG_KEY_NONCONVERGED] == '3'            # 2 deg -> column 2, 0 deg
+    untitled = plot_table(table, tmp_path / 'untitled.png', varus_deg=[2.0])
+    assert imread(out).shape == imread(untitled).shape
+    assert (imread(out) != imread(untitled)).any()                # the title is drawn
 
 
 def test_plot_overwrites_atomically(tmp_path: Path) -> None:
@@ -183,13 +183,40 @@ def test_render_views_differ_and_angles_are_chosen(tmp_path: Path) -> None:
 
 
 def test_render_off_grid_flexion_uses_interpolation(tmp_path: Path) -> None:
-    table = make_table()
-    try:
-        table.interpolate(-0.1, 0.0)
-    except NotImplementedError:
-        pytest.skip('PoseTable.interpolate is still a stub (kneeseat_core/table.py)')
-    out = render_table(table, knee_meshes(), tmp_path / 'r.png', flexion_deg=[-12.5])
-    assert imread(out).shape[1] == round(RENDER_PANEL_IN[0] * DPI)
+    """-11 deg lies between the nodes -15 and -10 deg: the render draws the table's
+    interpolated poses there (not the nearest node's) and flags the non-converged -15."""
+    i15, i10, v0 = 15, 16, 2                         # flexion -15, -10 deg; varus 0 deg
+    table = make_table(nonconverged=[(0, i15, v0)])  # the tibia at -15 deg, varus 0
+    assert np.degrees(table.flexion_rad[[i15, i10]]) == pytest.approx([-15.0, -10.0])
+    assert table.varus_rad[v0] == 0.0
+    lookup = table.interpolate(np.radians(-11.0), 0.0)
+
+    def both_nodes_hold(position: np.ndarray, orientation: np.ndarray) -> PoseTable:
+        """`table` with each body at this one pose on both nodes around -11 deg."""
+        pos, quat = np.array(table.position_m), np.array(table.orientation_xyzw)
+        pos[:, [i15, i10]] = np.asarray(position)[:, None, None]
+        quat[:, [i15, i10]] = np.asarray(orientation)[:, None, None]
+        return PoseTable(table.flexion_rad, table.varus_rad, pos, quat, table.converged,
+                         table.iterations, table.metadata)
+
+    meshes = knee_meshes()
+
+    def drawn(which: PoseTable, name: str) -> tuple[np.ndarray, str]:
+        out = render_table(which, meshes, tmp_path / name, flexion_deg=[-11.0])
+        return imread(out), png_text(out)[PNG_KEY_NONCONVERGED]
+
+    image, flagged = drawn(table, 'table.png')
+    assert image.shape[1] == round(RENDER_PANEL_IN[0] * DPI)        # one panel
+    assert flagged == '1'             # -15 deg weighs 0.2; the nearest node is converged
+    # Around -11 deg, a table whose two nodes both hold the interpolated poses can only
+    # draw those; one whose nodes hold the nearest node's (-10 deg) poses draws what a
+    # render snapping to the node would. Same titles and flags in all three.
+    interpolated, _ = drawn(both_nodes_hold(lookup.position_m, lookup.orientation_xyzw),
+                            'interpolated.png')
+    nearest, _ = drawn(both_nodes_hold(table.position_m[:, i10, v0],
+                                       table.orientation_xyzw[:, i10, v0]), 'nearest.png')
+    assert np.abs(image - interpolated).mean() < 1e-4
+    assert np.abs(image - nearest).mean() > 1e-2          # the tibia 0.8 mm away: visible
 
 
 @pytest.mark.parametrize(('kwargs', 'match'), [
@@ -275,16 +302,22 @@ def test_simplification_keeps_the_shape_within_budget() -> None:
 
 def test_convergence_map_colours_cells_by_reason(tmp_path: Path) -> None:
     table = make_table(nonconverged=4)
-    tibia_bad = np.argwhere(~np.asarray(table.converged[0]))
-    codes = np.where(np.asarray(table.converged), Status.REST, Status.ENVELOPE)
-    for k, (i, j) in enumerate(tibia_bad):
-        codes[0, i, j] = Status.LOST if k % 2 else Status.CAP
-    recorded = make_table(nonconverged=4, meta={'cells': {'status': codes.tolist()}})
+    tibia_bad = [tuple(int(k) for k in c) for c in np.argwhere(~np.asarray(table.converged))]
+    assert len(tibia_bad) == 4 and {c[0] for c in tibia_bad} == {0}
+    codes = {cell: Status.LOST if k % 2 else Status.CAP for k, cell in enumerate(tibia_bad)}
+    recorded = make_table(nonconverged=4, statuses=codes)
     out = plot_convergence_map(recorded, tmp_path / 'map.png')
     assert png_text(out)[PNG_KEY_NONCONVERGED] == '4'
     # a table written before reasons were recorded still maps its non-converged cells
-    assert png_text(plot_convergence_map(table, tmp_path / 'old.png'))[PNG_KEY_NONCONVERGED] \
-        == '4'
-    assert out.read_bytes() != (tmp_path / 'old.png').read_bytes()   # other legend, colours
+    old = plot_convergence_map(table, tmp_path / 'old.png')
+    assert png_text(old)[PNG_KEY_NONCONVERGED] == '4'
+    # one colour per reason in order of appearance: the first cell's 'iteration cap' red,
+    # 'lost contact' orange; without codes all four are 'not converged', red. Each colour
+    # fills its cells and a small legend patch.
+    red, orange = to_rgb('tab:red'), to_rgb('tab:orange')
+    assert pixels_near(old, orange) == 0
+    cap, lost, unknown = pixels_near(out, red), pixels_near(out, orange), pixels_near(old, red)
+    assert lost == pytest.approx(cap, rel=0.1)                   # two cells each
+    assert 0 < cap < 0.6 * unknown                               # two cells of four
     with pytest.raises(ConfigError, match=r'does not end in \.png'):
         plot_convergence_map(table, tmp_path / 'map.jpg')
