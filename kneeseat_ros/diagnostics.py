@@ -98,13 +98,14 @@ def status(counters: Counters, dropped: Mapping[str, int], served: Served, node:
         message = f'{recent} inputs dropped in the last {node.window_s:g} s'
     if node.recording_failed:
         level, message = DiagnosticStatus.ERROR, 'recording failed; still serving'
+    bounds = served.bounds_deg
     values: list[tuple[str, object]] = [
         ('table', str(served.path)),
         ('table_sha256', served.table.sha256),
         ('reference_frame', served.frame),
         ('bodies', ' '.join(served.bodies)),
-        ('flexion_range_deg', f'{served.bounds_deg[0]:.3f} {served.bounds_deg[1]:.3f}'),
-        ('varus_range_deg', f'{served.bounds_deg[2]:.3f} {served.bounds_deg[3]:.3f}'),
+        ('flexion_range_deg', f'{bounds.flexion_min_deg:.3f} {bounds.flexion_max_deg:.3f}'),
+        ('varus_range_deg', f'{bounds.varus_min_deg:.3f} {bounds.varus_max_deg:.3f}'),
         ('out_of_range', node.out_of_range),
         ('mode', 'tracker' if node.tracker_mode else 'attitude'),
         ('tf', 'on' if node.tf_on else 'off'),

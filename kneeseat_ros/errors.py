@@ -1,7 +1,9 @@
-"""The ROS layer's errors: each a `KneeseatError` a user can act on, except `CdrError`.
+"""The ROS layer's errors: every one a `KneeseatError` (kneeseat_core.errors' tree).
 
 Every message says what failed, where (file, topic, option) and how to fix it. The node's
-callbacks and the command-line entry points catch these; bugs crash loudly.
+callbacks and the command-line entry points catch these; bugs crash loudly. `CdrError` is
+also a `ValueError` (what it was before it joined the tree), so a caller that catches
+ValueError around CDR decoding still catches it.
 """
 from __future__ import annotations
 
@@ -44,9 +46,10 @@ class DataMissing(KneeseatError):
     """The chosen knee's meshes are not where its config says (the demo exits with 2)."""
 
 
-class CdrError(ValueError):
+class CdrError(KneeseatError, ValueError):
     """Bytes that are not a little-endian CDR message of the expected type.
 
-    Not a `KneeseatError`: the node answers it by falling back to rclpy's deserialiser,
-    and only counts the message as malformed when that fails too.
+    The node catches it in its input callbacks (`responder`): it falls back to rclpy's
+    deserialiser, and counts the message as malformed only when that fails too. A
+    `ValueError` as well, for callers that catch that around decoding.
     """

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 import re
+from typing import NamedTuple
 
 import numpy as np
 from rclpy.publisher import Publisher
@@ -19,7 +20,7 @@ from kneeseat_core.table import PoseTable, read_table
 from .cdr import PoseStampedWriter, TfWriter
 from .conversions import AttitudeDecoder, display_mesh_paths
 
-__all__ = ['load_table', 'Served', 'Route']
+__all__ = ['load_table', 'GridBounds', 'Served', 'Route']
 
 _BODY_NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
@@ -44,6 +45,15 @@ def load_table(path: Path) -> PoseTable:
     return table
 
 
+class GridBounds(NamedTuple):
+    """The table grid's first and last flexion and varus, in degrees."""
+
+    flexion_min_deg: float
+    flexion_max_deg: float
+    varus_min_deg: float
+    varus_max_deg: float
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Served:
     """A loaded table and everything derived from it that the hot path needs."""
@@ -56,7 +66,7 @@ class Served:
     bodies: tuple[str, ...]
     body_frames: tuple[str, ...]
     meshes: tuple[tuple[str, ...], ...]     # display mesh files: reference, then bodies
-    bounds_deg: tuple[float, float, float, float]
+    bounds_deg: GridBounds
     writer: PoseStampedWriter          # answers in the reference frame, as CDR bytes
     tf: TfWriter                       # reference -> bodies (and world -> reference)
 
@@ -78,7 +88,8 @@ class Served:
             pairs.append((world_frame, frame))
         return cls(table, path, frame, str(meta['reference']['name']),
                    AttitudeDecoder(table.axes), table.bodies, table.body_frames, meshes,
-                   (float(flexion[0]), float(flexion[-1]), float(varus[0]), float(varus[-1])),
+                   GridBounds(float(flexion[0]), float(flexion[-1]), float(varus[0]),
+                              float(varus[-1])),
                    PoseStampedWriter(frame), TfWriter(pairs))
 
 

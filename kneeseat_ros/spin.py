@@ -14,18 +14,26 @@ its wait set in Python on every call. So timers, services and parameters run in 
 executor in a second thread, which sleeps until one of them is ready (the inputs' callback
 group, `InputsGroup`, keeps the inputs out of it). An idle node sleeps in both. The wait
 also times out every `SHUTDOWN_CHECK_NS` to look at the context, as a safety net for
-shutdown. Uses rclpy's WaitSet and take_message as rclpy.executors does (Jazzy).
+shutdown.
+
+This speed costs a dependence on rclpy below its public API: its C extension's WaitSet,
+take_message and entity pointers, the Python entities' handles, and how its executor asks
+a callback group, used as rclpy.executors uses them (Jazzy). `RCLPY_INTERNALS` lists each
+one with the signature used here, in one place; test_table_server checks every entry
+against the installed rclpy, and when one fails this module must be adapted to the new
+rclpy before the node can be trusted on it.
 """
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 import contextlib
+from dataclasses import dataclass
 import gc
 import os
 import sys
 import tempfile
 import threading
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup
@@ -39,7 +47,7 @@ from rclpy.subscription import Subscription
 from kneeseat_core.errors import KneeseatError
 
 __all__ = ['InputsGroup', 'Handler', 'drain', 'serve', 'run_node', 'DRAIN_MAX',
-           'SHUTDOWN_CHECK_NS', 'RCLError']
+           'SHUTDOWN_CHECK_NS', 'RCLError', 'RclpyInternal', 'RCLPY_INTERNALS']
 
 RCLError = _rclpy.RCLError
 # Messages taken per wake-up of one input (see `drain`).
@@ -49,6 +57,85 @@ DRAIN_MAX = 100
 SHUTDOWN_CHECK_NS = 1_000_000_000
 
 Handler = Callable[[Any], None]
+
+
+@dataclass(frozen=True, slots=True)
+class RclpyInternal:
+    """One piece of rclpy below its public API that this module relies on.
+
+    `owner` is the dotted path of the class (or module) that has it, `name` the attribute.
+    `kind` says what it must be: 'class' (an exception or base class: `returns` is the
+    class it must derive from), 'method' (`params` are the parameters after self: for the
+    C extension the types its pybind11 signature declares, for Python code their names;
+    `returns` is the type the C extension declares, '' for Python), 'property' (a property
+    of the class), or 'attribute' (of live instances; `returns` is its type's dotted path).
+    """
+
+    owner: str
+    name: str
+    kind: Literal['class', 'method', 'property', 'attribute']
+    params: tuple[str, ...] = ()
+    returns: str = ''
+    use: str = ''
+
+
+_C = 'rclpy.impl.implementation_singleton.rclpy_implementation'    # `_rclpy` here
+_SUB, _GUARD = 'rclpy.subscription.Subscription', 'rclpy.guard_condition.GuardCondition'
+_GROUP = 'rclpy.callback_groups.CallbackGroup'
+# Every internal `serve`, `drain`, `InputsGroup` and `RCLError` use (rclpy 7, Jazzy).
+RCLPY_INTERNALS: tuple[RclpyInternal, ...] = (
+    RclpyInternal(_C, 'RCLError', 'class', returns='builtins.Exception',
+                  use='what rcl_wait and rclpy.init raise (caught on shutdown, bad args)'),
+    RclpyInternal(f'{_C}.WaitSet', '__init__', 'method', ('int',) * 6 + ('Context',), 'None',
+                  use='_wait_loop: a wait set of (subscriptions, guards, timers, clients, '
+                      'services, events) on the context handle'),
+    RclpyInternal(f'{_C}.WaitSet', 'clear_entities', 'method', (), 'None',
+                  use='_wait_loop: empty the set before each wait'),
+    RclpyInternal(f'{_C}.WaitSet', 'add_subscription', 'method', ('Subscription',), 'int',
+                  use='_wait_loop: wait on an input'),
+    RclpyInternal(f'{_C}.WaitSet', 'add_guard_condition', 'method', ('GuardCondition',),
+                  'int', use='_wait_loop: wait on the stop guard'),
+    RclpyInternal(f'{_C}.WaitSet', 'wait', 'method', ('int',), 'None',
+                  use='_wait_loop: rcl_wait with a timeout in ns'),
+    RclpyInternal(f'{_C}.WaitSet', 'get_ready_entities', 'method', ('str',), 'list',
+                  use="_wait_loop: the ready subscriptions' pointers ('subscription')"),
+    RclpyInternal(f'{_C}.Subscription', 'take_message', 'method', ('object', 'bool'),
+                  'object', use='drain: (message, info) or None; bytes when raw'),
+    RclpyInternal(f'{_C}.Subscription', 'pointer', 'property',
+                  use='_wait_loop: matched against get_ready_entities'),
+    RclpyInternal(f'{_C}.Subscription', '__enter__', 'method', (), 'None',
+                  use='drain, _wait_loop: hold the handle while it is used'),
+    RclpyInternal(f'{_C}.Subscription', '__exit__', 'method', ('object',) * 3, 'None',
+                  use='drain, _wait_loop: release it'),
+    RclpyInternal(f'{_C}.GuardCondition', '__enter__', 'method', (), 'None',
+                  use='_wait_loop: hold the stop guard while waiting on it'),
+    RclpyInternal(f'{_C}.GuardCondition', '__exit__', 'method', ('object',) * 3, 'None',
+                  use='_wait_loop: release it'),
+    RclpyInternal(f'{_C}.Context', '__enter__', 'method', (), 'None',
+                  use='_wait_loop: hold the context while waiting in it'),
+    RclpyInternal(f'{_C}.Context', '__exit__', 'method', ('object',) * 3, 'None',
+                  use='_wait_loop: release it'),
+    RclpyInternal(_SUB, 'handle', 'attribute', returns=f'{_C}.Subscription',
+                  use='drain, _wait_loop: the C subscription'),
+    RclpyInternal(_SUB, 'msg_type', 'attribute', returns='builtins.type',
+                  use='drain: take_message argument'),
+    RclpyInternal(_SUB, 'raw', 'attribute', returns='builtins.bool',
+                  use='drain: take_message argument'),
+    RclpyInternal(_GUARD, '__init__', 'method', ('callback', 'callback_group', 'context'),
+                  use='serve: the stop guard, GuardCondition(None, None, context=)'),
+    RclpyInternal(_GUARD, 'handle', 'attribute', returns=f'{_C}.GuardCondition',
+                  use='_wait_loop: the C guard condition'),
+    RclpyInternal('rclpy.context.Context', 'handle', 'attribute', returns=f'{_C}.Context',
+                  use='_wait_loop: the C context of the wait set'),
+    RclpyInternal(_GROUP, '__init__', 'method', (),
+                  use='InputsGroup: a callback group of its own, built without arguments'),
+    RclpyInternal(_GROUP, 'can_execute', 'method', ('entity',),
+                  use='InputsGroup: the executor leaves out what it refuses'),
+    RclpyInternal(_GROUP, 'beginning_execution', 'method', ('entity',),
+                  use='InputsGroup: asked before a callback runs'),
+    RclpyInternal(_GROUP, 'ending_execution', 'method', ('entity',),
+                  use='InputsGroup: told after a callback ran'),
+)
 
 
 class InputsGroup(CallbackGroup):

@@ -26,6 +26,7 @@ and out, no rclpy message object per message), diagnostics (`diagnostics`), how 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 import functools
 from pathlib import Path
 import sys
@@ -41,6 +42,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import (qos_profile_sensor_data, QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile,
                        QoSReliabilityPolicy)
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -49,12 +51,12 @@ from kneeseat_core.errors import ConfigError, KneeseatError
 from kneeseat_ros import topics
 from kneeseat_ros.conversions import body_markers, DROP_REASONS, stamp_from_ns, stamp_ns
 from kneeseat_ros.diagnostics import Counters, NodeState, status
-from kneeseat_ros.responder import Responder
+from kneeseat_ros.responder import Responder, TrackerMode
 from kneeseat_ros.served import Route, Served
 from kneeseat_ros.server_params import declare_parameters, USAGE
 from kneeseat_ros.spin import drain, Handler, InputsGroup, run_node, serve
 from kneeseat_ros.topics import STATUS_NAME
-from kneeseat_ros.tracker import load_registration, Pairer, Registration
+from kneeseat_ros.tracker import load_registration, Pairer
 
 if TYPE_CHECKING:
     from kneeseat_ros.bag.recorder import BagRecorder
@@ -76,6 +78,15 @@ TF_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
 _BODY_RGBA = ((0.85, 0.8, 0.7, 1.0), (0.7, 0.8, 0.9, 1.0), (0.8, 0.9, 0.7, 1.0))
 _REFERENCE_RGBA = (0.95, 0.95, 0.9, 0.6)
 _POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Input:
+    """One input: its subscription (raw CDR bytes), its handler, and the type recorded."""
+
+    sub: Subscription
+    handle: Handler
+    msg_type: str
 
 
 class TableServer(Node):
@@ -101,17 +112,18 @@ class TableServer(Node):
             (lambda: self._ros_clock.now().nanoseconds)
             if self.get_parameter('use_sim_time').value else time.time_ns)
         self.params = declare_parameters(self)
-        self._registration: Registration | None = None
+        self._tracker: TrackerMode | None = None
         if self.params.tracker_registration:
-            self._registration = load_registration(
-                Path(self.params.tracker_registration).expanduser())
-        self._world = (self.params.tracker_world_frame if self._registration is not None
-                       else None)
+            tolerance_s = self.params.tracker_pair_tolerance_s
+            self._tracker = TrackerMode(
+                load_registration(Path(self.params.tracker_registration).expanduser()),
+                Pairer(int(round(tolerance_s * 1e9))), self.params.tracker_world_frame,
+                tolerance_s)
+        self._world = self._tracker.world_frame if self._tracker is not None else None
         served = Served.load(self.params.table, self._world)
         self._counters = Counters(DROP_REASONS, self._ros_clock.now().nanoseconds)
         self._recorder: BagRecorder | None = None
         self._recorder_error_logged = False
-        self._pairer: Pairer[Any] | None = None
         self._pubs: dict[str, Publisher] = {}
         self._world_pubs: dict[str, Publisher] = {}
         self._inputs_group = InputsGroup()
@@ -136,15 +148,10 @@ class TableServer(Node):
             DiagnosticArray, topics.DIAGNOSTICS, OUTPUT_QOS,
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
         self._tf_pub = self._make_tf_publisher()
-        tracker = None
-        if self._registration is not None:
-            self._pairer = Pairer(int(round(self.params.tracker_pair_tolerance_s * 1e9)))
-            tracker = (self._registration, self._pairer, self.params.tracker_world_frame,
-                       self.params.tracker_pair_tolerance_s)
         self._responder = Responder(route, self._counters, self._log, self._now_ns,
                                     self.params.out_of_range,
                                     (self.params.flexion_joint, self.params.varus_joint),
-                                    tracker, self._tf_pub)
+                                    self._tracker, self._tf_pub)
         self._marker_pub = None
         if self.params.publish_markers:
             self._marker_pub = self.create_publisher(
@@ -156,7 +163,7 @@ class TableServer(Node):
     def _create_inputs(self) -> None:
         """knee/pose and knee/joint_states, or the two tracker topics (raw CDR bytes)."""
         responder = self._responder
-        if self._registration is None:
+        if self._tracker is None:
             wanted: list[tuple[type, str, Handler, str]] = [
                 (PoseStamped, topics.POSE, responder.handle_pose, _POSE_TYPE),
                 (JointState, topics.JOINT_STATES, responder.handle_joints,
@@ -166,25 +173,27 @@ class TableServer(Node):
                        _POSE_TYPE)
                       for side, topic in enumerate((self.params.tracker_femur_topic,
                                                     self.params.tracker_tibia_topic))]
-        self._inputs: list[tuple[Any, Handler, str]] = []
+        self._inputs: list[_Input] = []
         for msg_class, topic, handle, msg_type in wanted:
             sub = self.create_subscription(msg_class, topic,
                                            functools.partial(self._on_input, handle=handle),
                                            INPUT_QOS, raw=True,
                                            callback_group=self._inputs_group)
-            self._inputs.append((sub, handle, msg_type))
-        responder.input_topics = [sub.topic_name for sub, _, _ in self._inputs]
+            self._inputs.append(_Input(sub, handle, msg_type))
+        responder.set_input_topics([i.sub.topic_name for i in self._inputs])
 
     def _startup_line(self) -> str:
         s, route = self._served, self._responder.route
-        mode = ('attitude' if self._registration is None else
-                f'tracker (registration {self._registration.path}, world frame '
-                f'{self.params.tracker_world_frame!r})')
+        bounds = s.bounds_deg
+        mode = ('attitude' if self._tracker is None else
+                f'tracker (registration {self._tracker.registration.path}, world frame '
+                f'{self._tracker.world_frame!r})')
         return (
             f'serving {s.path} (sha256 {s.table.sha256[:12]}) bodies {list(s.bodies)} in '
-            f'{s.frame!r}, flexion [{s.bounds_deg[0]:.1f}, {s.bounds_deg[1]:.1f}] deg, varus '
-            f'[{s.bounds_deg[2]:.1f}, {s.bounds_deg[3]:.1f}] deg, out_of_range='
-            f'{self.params.out_of_range}; {mode}; in {[i[0].topic_name for i in self._inputs]} '
+            f'{s.frame!r}, flexion [{bounds.flexion_min_deg:.1f}, {bounds.flexion_max_deg:.1f}]'
+            f' deg, varus [{bounds.varus_min_deg:.1f}, {bounds.varus_max_deg:.1f}] deg, '
+            f'out_of_range={self.params.out_of_range}; {mode}; in '
+            f'{[i.sub.topic_name for i in self._inputs]} '
             f'(sensor data QoS: best effort, depth {INPUT_QOS.depth}); out '
             f'{[p.topic_name for p in route.body_pubs + route.body_world_pubs]} '
             f'(reliable, depth {OUTPUT_QOS.depth}), tf '
@@ -198,7 +207,7 @@ class TableServer(Node):
                 self._pubs[body] = self._pose_publisher(topics.body_pose(body))
         world: tuple[Publisher, ...] = ()
         reference = None
-        if self._registration is not None:
+        if self._tracker is not None:
             for body in (served.reference, *served.bodies):
                 if body not in self._world_pubs:
                     self._world_pubs[body] = self._pose_publisher(topics.body_world_pose(body))
@@ -233,7 +242,7 @@ class TableServer(Node):
                                   '(set display_mesh in the knee config and rebuild)')
 
     def _recorded_topics(self) -> list[tuple[str, str, QoSProfile]]:
-        recorded = [(sub.topic_name, msg_type, INPUT_QOS) for sub, _, msg_type in self._inputs]
+        recorded = [(i.sub.topic_name, i.msg_type, INPUT_QOS) for i in self._inputs]
         for pub in (*self._pubs.values(), *self._world_pubs.values()):
             recorded.append((pub.topic_name, _POSE_TYPE, OUTPUT_QOS))
         recorded.append((self._diag_pub.topic_name, 'diagnostic_msgs/msg/DiagnosticArray',
@@ -251,24 +260,25 @@ class TableServer(Node):
         except ImportError as err:
             raise ConfigError(f"parameter 'record' is set but the recorder is unavailable "
                               f"({err}); set record:='' or install kneeseat_ros fully") from None
-        self._recorder = self._responder.recorder = open_session(
+        self._recorder = open_session(
             Path(self.params.record).expanduser().absolute(), self._ros_clock.now().nanoseconds,
             self._recorded_topics(), self._served.table.sha256, str(self._served.path),
             split_size_bytes=int(self.params.record_split_size_mb * 1024 * 1024),
             split_duration_s=self.params.record_split_duration_s)
+        self._responder.start_recording(self._recorder)
 
     # ------------------------------------------------------------------ inputs
     def _on_input(self, msg: Any, handle: Handler) -> None:
         """Executor callback of an input: handle it, then what else is queued behind it."""
         handle(msg)
-        for sub, h, _ in self._inputs:
-            if h is handle:
-                drain(sub, handle)
+        for i in self._inputs:
+            if i.handle is handle:
+                drain(i.sub, handle)
 
     def serve(self) -> None:
         """Spin until shutdown: the inputs in this thread, everything else in a second one
         (`kneeseat_ros.spin.serve`)."""
-        serve(self, self._inputs_group, [(sub, handle) for sub, handle, _ in self._inputs])
+        serve(self, self._inputs_group, [(i.sub, i.handle) for i in self._inputs])
 
     def _record(self, topic: str, msg: Any, publish_time_ns: int) -> None:
         """Record a message object (the slow callbacks: markers, diagnostics)."""
@@ -278,13 +288,13 @@ class TableServer(Node):
     # ------------------------------------------------------- slow callbacks
     def _publish_markers(self) -> None:
         served, last = self._served, self._responder.last
-        stamp = (stamp_from_ns(last[1] * 1_000_000_000 + last[2]) if last is not None
+        stamp = (stamp_from_ns(last.sec * 1_000_000_000 + last.nanosec) if last is not None
                  else self._ros_clock.now().to_msg())
         markers = MarkerArray()
         markers.markers.extend(body_markers(0, served.meshes[0], served.frame, stamp,
                                             rgba=_REFERENCE_RGBA))
         if last is not None:
-            lookup = last[0]
+            lookup = last.lookup
             for i, meshes in enumerate(served.meshes[1:]):
                 markers.markers.extend(body_markers(
                     i + 1, meshes, served.frame, stamp, lookup.position_m[i],
@@ -298,11 +308,11 @@ class TableServer(Node):
         """The current DiagnosticArray; starts a new rate/latency window."""
         now = self._ros_clock.now()
         dropped = dict(self._counters.dropped)
-        if self._pairer is not None:
-            dropped['unpaired'] += self._pairer.unpaired
-            dropped['stale'] += self._pairer.stale
+        if self._tracker is not None:
+            dropped['unpaired'] += self._tracker.pairer.unpaired
+            dropped['stale'] += self._tracker.pairer.stale
         state = NodeState(self.get_fully_qualified_name(), self.params.out_of_range,
-                          self._registration is not None, self._tf_pub is not None,
+                          self._tracker is not None, self._tf_pub is not None,
                           self.params.diagnostics_window_s, self._recorder_status(),
                           self._recorder is not None and bool(self._recorder.error))
         array = DiagnosticArray()
@@ -333,10 +343,9 @@ class TableServer(Node):
         """Serve the table at `path`; the old one stays on failure (KneeseatError)."""
         old = self._served
         served = Served.load(path, self._world)
-        self._responder.route = self._make_route(served)
+        self._responder.switch_route(self._make_route(served))
         if self._marker_pub is not None:
             self._check_meshes()
-        self._responder.last = None
         return (f'serving {path} (sha256 {served.table.sha256[:12]}), was '
                 f'{old.path} (sha256 {old.table.sha256[:12]})')
 

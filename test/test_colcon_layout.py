@@ -15,7 +15,7 @@ from typing import Any
 
 from conftest import install_env, write_synthetic_table
 import pytest
-from test_table_server import assert_answer, Probe, ServerProcess
+from ros_helpers import assert_answer, Probe, ServerProcess
 
 from kneeseat_core.table import read_table
 from kneeseat_ros.conversions import joint_state

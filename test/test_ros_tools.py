@@ -21,8 +21,7 @@ import sys
 from conftest import install_env, REPO, ros_env, track_child, write_synthetic_table
 import numpy as np
 import pytest
-from test_table_server import ServerProcess
-from test_tracker import rigid
+from ros_helpers import rigid, ServerProcess
 import yaml
 
 from kneeseat_core.table import read_table

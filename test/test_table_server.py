@@ -7,162 +7,49 @@ Nothing sleeps to synchronise: every wait spins until a condition holds or a dea
 from __future__ import annotations
 
 from collections.abc import Iterator
+import importlib
+import inspect
 import math
 from pathlib import Path
 import re
 import signal
 import subprocess
-import sys
 import time
 from typing import Any
 
-from conftest import (next_domain_id, REPO, ros_env, spin_until, synthetic_table, track_child,
+from conftest import (next_domain_id, REPO, ros_env, spin_until, synthetic_table,
                       write_synthetic_table)
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.guard_condition import GuardCondition
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data, QoSProfile, QoSReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from rosbags.typesys import get_typestore, Stores
+from ros_helpers import (assert_answer, BODIES, expected, Probe, RELIABLE, ServerProcess,
+                         TABLE_SERVER)
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import Marker
 import yaml
 
 from kneeseat_core.errors import ConfigError
-from kneeseat_core.geometry import matrix_from_quat
-from kneeseat_core.table import PoseTable, read_table
-from kneeseat_ros.conversions import (joint_state, pose_stamped, pose_stamped_for_attitude,
-                                      stamp_from_ns, stamp_ns)
+from kneeseat_core.table import read_table
+from kneeseat_ros import spin
+from kneeseat_ros.cdr import (decode_joint_state, decode_pose_stamped, encode_joint_state,
+                              encode_pose_stamped)
+from kneeseat_ros.conversions import (DROP_REASONS, joint_state, pose_stamped,
+                                      pose_stamped_for_attitude, stamp_from_ns, stamp_ns)
+from kneeseat_ros.diagnostics import Counters
+from kneeseat_ros.errors import CdrError
+from kneeseat_ros.responder import Responder, TrackerMode
+from kneeseat_ros.served import Route, Served
 from kneeseat_ros.table_server import main, STATUS_NAME, TableServer
+from kneeseat_ros.tracker import Pairer, Registration
 
 pytestmark = pytest.mark.ros
-
-TABLE_SERVER = Path(sys.prefix) / 'bin' / 'table_server'
-RELIABLE = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
-BODIES = ('tibia', 'patella')
-
-
-class ServerProcess:
-    """The installed table_server in its own process; output goes to files."""
-
-    def __init__(self, tmp_path: Path, domain_id: int, table: Path, *params: str,
-                 executable: Path = TABLE_SERVER, env: dict[str, str] | None = None,
-                 ros_args: list[str] | None = None, exact_env: bool = False) -> None:
-        """Start the server; `exact_env` uses `env` as given (no ros_env additions)."""
-        tmp_path.mkdir(parents=True, exist_ok=True)
-        self.out, self.err = tmp_path / 'server.out', tmp_path / 'server.err'
-        args = [str(executable), '--ros-args', *(ros_args or []), '-p', f'table:={table}']
-        for p in params:
-            args += ['-p', p]
-        with open(self.out, 'wb') as out, open(self.err, 'wb') as err:
-            self.proc = track_child(subprocess.Popen(
-                args, stdout=out, stderr=err,
-                env=env if exact_env and env is not None else ros_env(domain_id, env)))
-
-    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
-        """Send `sig` and wait; a node that does not exit is killed (and the test fails)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        try:
-            return self.proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-            raise
-
-    def stderr(self) -> str:
-        return self.err.read_text()
-
-    def stop_clean(self, sig: int = signal.SIGTERM) -> None:
-        """Stop with `sig`; the node must exit 0 without a traceback."""
-        rc = self.stop(sig)
-        err = self.stderr()
-        assert rc == 0 and 'Traceback' not in err, f'exit {rc}, stderr:\n{err}'
-
-
-class Probe:
-    """A test node: publishes tracker and joint inputs, collects every output."""
-
-    def __init__(self, context: Any, bodies: tuple[str, ...] = BODIES, ns: str = '',
-                 node: str = 'table_server', name: str = 'probe') -> None:
-        self.ns = ns
-        self.node = rclpy.create_node(name, context=context)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        # reliable tracker, best-effort joints: the node must accept both
-        self.pose_pub = self.node.create_publisher(PoseStamped, f'{ns}/knee/pose', RELIABLE)
-        self.joint_pub = self.node.create_publisher(JointState, f'{ns}/knee/joint_states',
-                                                    qos_profile_sensor_data)
-        self.answers: dict[tuple[str, int], PoseStamped] = {}
-        self.arrivals: list[tuple[str, int]] = []
-        for body in bodies:
-            self.node.create_subscription(
-                PoseStamped, f'{ns}/knee/{body}/pose',
-                lambda msg, body=body: self._on_answer(body, msg), RELIABLE)
-        self.status: dict[str, str] = {}
-        self.level = b''
-        self.hardware_id = ''
-        self.levels: list[bytes] = []
-        self.history: list[dict[str, str]] = []
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, RELIABLE)
-        self.markers: list[MarkerArray] = []
-        self.node.create_subscription(MarkerArray, f'{ns}/knee/markers', self.markers.append,
-                                      RELIABLE)
-        self.reload = self.node.create_client(Trigger, f'{ns}/{node}/reload')
-        self._stamp = 1_000_000_000_000
-
-    def _on_answer(self, body: str, msg: PoseStamped) -> None:
-        key = (body, stamp_ns(msg.header.stamp))
-        self.answers[key] = msg
-        self.arrivals.append(key)
-
-    def _on_diag(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            if status.name == STATUS_NAME and status.hardware_id.startswith(f'{self.ns}/'):
-                self.status = {kv.key: kv.value for kv in status.values}
-                self.level, self.hardware_id = status.level, status.hardware_id
-                self.levels.append(status.level)
-                self.history.append(dict(self.status))
-
-    def next_stamp(self) -> Any:
-        self._stamp += 1_000_003
-        return stamp_from_ns(self._stamp)
-
-    def wait_connected(self, bodies: tuple[str, ...] = BODIES) -> None:
-        topics = [f'{self.ns}/knee/{b}/pose' for b in bodies]
-        spin_until(self.executor, lambda: (
-            self.pose_pub.get_subscription_count() > 0
-            and self.joint_pub.get_subscription_count() > 0
-            and all(self.node.count_publishers(t) > 0 for t in topics)),
-            timeout_s=20.0, what='discovery of table_server')
-
-    def ask(self, msg: Any, bodies: tuple[str, ...] = BODIES) -> dict[str, PoseStamped]:
-        """Publish `msg` until every body's answer with its stamp arrived (resend: 0.5 s)."""
-        pub = self.pose_pub if isinstance(msg, PoseStamped) else self.joint_pub
-        key = stamp_ns(msg.header.stamp)
-        last = [-math.inf]
-
-        def resend() -> None:
-            if time.monotonic() - last[0] > 0.5:
-                last[0] = time.monotonic()
-                pub.publish(msg)
-
-        spin_until(self.executor, lambda: all((b, key) in self.answers for b in bodies),
-                   timeout_s=10.0, what=f'answer to stamp {key}', every=resend)
-        return {b: self.answers[(b, key)] for b in bodies}
-
-    def wait_status(self, want: dict[str, str], timeout_s: float = 10.0) -> dict[str, str]:
-        spin_until(self.executor,
-                   lambda: all(self.status.get(k) == v for k, v in want.items()),
-                   timeout_s=timeout_s, what=f'diagnostics {want} (last: {self.status})')
-        return self.status
-
-    def destroy(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
 
 
 @pytest.fixture
@@ -182,28 +69,6 @@ def server(tmp_path: Path, domain_id: int, table_path: Path) -> Iterator[ServerP
     srv = ServerProcess(tmp_path, domain_id, table_path, 'diagnostics_period_s:=0.2')
     yield srv
     srv.stop(signal.SIGKILL) if srv.proc.poll() is None else None
-
-
-def expected(table: PoseTable, msg: Any, out_of_range: str = 'clamp') -> Any:
-    """The core's answer for an input message: decompose (pose) or read (joints)."""
-    if isinstance(msg, PoseStamped):
-        o = msg.pose.orientation
-        flexion, varus, _ = table.axes.decompose(matrix_from_quat(np.array([o.x, o.y, o.z,
-                                                                            o.w])))
-    else:
-        flexion, varus = msg.position[0], msg.position[1]
-    return table.interpolate(float(flexion), float(varus), out_of_range)
-
-
-def assert_answer(table: PoseTable, msg: Any, got: dict[str, PoseStamped]) -> None:
-    want = expected(table, msg)
-    for i, body in enumerate(table.bodies):
-        out = got[body]
-        assert out.header.frame_id == 'femur'
-        assert stamp_ns(out.header.stamp) == stamp_ns(msg.header.stamp)
-        p, o = out.pose.position, out.pose.orientation
-        assert np.abs(np.array([p.x, p.y, p.z]) - want.position_m[i]).max() <= 1e-9
-        assert np.abs(np.array([o.x, o.y, o.z, o.w]) - want.orientation_xyzw[i]).max() <= 1e-9
 
 
 def test_answers_equal_core_interpolation_and_markers(tmp_path: Path, domain_id: int,
@@ -419,6 +284,120 @@ def test_bad_start_exits_2_without_traceback(params: list[str], match: str, tmp_
     assert len(err.strip().splitlines()) == 1 and 'Traceback' not in err
 
 
+class _FakePublisher:
+    """Stands for an rclpy Publisher of CDR bytes."""
+
+    def __init__(self, topic_name: str) -> None:
+        self.topic_name = topic_name
+        self.sent: list[bytes] = []
+
+    def publish(self, data: bytes) -> None:
+        self.sent.append(data)
+
+
+class _FakeLog:
+    def __init__(self) -> None:
+        self.warnings: list[str] = []
+
+    def warning(self, message: str, throttle_duration_sec: float = 0.0) -> None:
+        self.warnings.append(message)
+
+
+class _FakeRecorder:
+    def __init__(self) -> None:
+        self.written: list[tuple[str, bytes, int]] = []
+
+    def write_raw(self, topic: str, data: bytes, log_time_ns: int,
+                  publish_time_ns: int) -> None:
+        self.written.append((topic, data, publish_time_ns))
+
+
+def _route(served: Served, tracker: bool = False) -> Route:
+    world = (tuple(_FakePublisher(f'/knee/{b}/world_pose') for b in served.bodies)
+             if tracker else ())
+    return Route(served, tuple(_FakePublisher(f'/knee/{b}/pose') for b in served.bodies),
+                 world, _FakePublisher('/knee/femur/world_pose') if tracker else None)
+
+
+def _close(got: Any, want: Any) -> bool:
+    return float(np.abs(np.asarray(got) - np.asarray(want)).max()) <= 1e-9
+
+
+def test_responder_state_and_cdr_fallback(tmp_path: Path, table_path: Path) -> None:
+    """The hot path without DDS: big-endian inputs (CdrError) are read by rclpy and answered
+    like little-endian ones, undecodable bytes are counted as malformed; the latest answer
+    and what the node switches (route, recording) go through the responder's own API."""
+    table = read_table(table_path)
+    log, recorder = _FakeLog(), _FakeRecorder()
+    counters = Counters(DROP_REASONS, 0)
+    responder = Responder(_route(Served.load(table_path)), counters, log, time.time_ns,
+                          'clamp', ('knee_flexion', 'knee_varus'))
+    responder.set_input_topics(['/knee/pose', '/knee/joint_states'])
+    responder.start_recording(recorder)
+    assert responder.last is None
+    msg = pose_stamped_for_attitude(table.axes, -0.4, 0.05, stamp_from_ns(3_000_000_004),
+                                    'femur')
+    o = msg.pose.orientation
+    pose_le = encode_pose_stamped(3, 4, 'femur', (0.0, 0.0, 0.0, o.x, o.y, o.z, o.w))
+    joints = joint_state(-0.6, 0.02, stamp_from_ns(5_000_000_006))
+    joints_le = encode_joint_state(5, 6, '', list(joints.name), list(joints.position), [], [])
+    rosbags = get_typestore(Stores.ROS2_JAZZY)
+    for name, data, decode, handle, sent, stamp in (
+            ('geometry_msgs/msg/PoseStamped', pose_le, decode_pose_stamped,
+             responder.handle_pose, msg, (3, 4)),
+            ('sensor_msgs/msg/JointState', joints_le, decode_joint_state,
+             responder.handle_joints, joints, (5, 6))):
+        as_be = bytes(rosbags.serialize_cdr(rosbags.deserialize_cdr(data, name), name,
+                                            little_endian=False))
+        with pytest.raises(CdrError, match='little-endian'):
+            decode(as_be)
+        for raw in (data, as_be):
+            before = [len(pub.sent) for pub in responder.route.body_pubs]
+            handle(raw)
+            assert [len(pub.sent) for pub in responder.route.body_pubs] == [
+                n + 1 for n in before], f'{name} {raw[:4].hex()} not answered'
+        # the same answer, bit for bit, whichever reader took the input
+        assert all(pub.sent[-1] == pub.sent[-2] for pub in responder.route.body_pubs)
+        last = responder.last
+        assert last is not None and (last.sec, last.nanosec) == stamp
+        assert _close(last.lookup.position_m, expected(table, sent).position_m)
+    assert counters.received == counters.answered == 4
+    # inputs are recorded little endian (as our writer puts them) under their topics
+    inputs = [(t, d) for t, d, _ in recorder.written if t in ('/knee/pose', '/knee/joint_states')]
+    assert inputs == [('/knee/pose', pose_le)] * 2 + [('/knee/joint_states', joints_le)] * 2
+    assert [t for t, _, _ in recorder.written].count('/knee/tibia/pose') == 4
+    # undecodable by both readers: counted as received and malformed, not answered
+    responder.handle_pose(b'\x00\x00\x00\x00\x01')
+    responder.handle_joints(b'\x00\x01\x00\x00\x01\x02')
+    assert counters.dropped['malformed'] == 2 and counters.received == 6
+    assert counters.answered == 4 and len(log.warnings) == 2
+    # a new route: the old answer is forgotten, answers go to the new publishers
+    new_route = _route(Served.load(write_synthetic_table(tmp_path / 'new.npz', seed=9,
+                                                         offset_m=0.05)))
+    responder.switch_route(new_route)
+    assert responder.route is new_route and responder.last is None
+    responder.handle_joints(joints_le)
+    assert [len(pub.sent) for pub in new_route.body_pubs] == [1, 1]
+    assert responder.last is not None and responder.last.lookup.position_m[0, 0] > 0.04
+    with pytest.raises(AttributeError):
+        responder.last = None       # read-only: the node calls switch_route
+    # tracker mode: a pair is answered with the femur's stamp, in the world frame too
+    identity = (0.0,) * 6 + (1.0,)
+    tracker = TrackerMode(Registration(identity, identity, tmp_path / 'reg.yaml'),
+                          Pairer(1_000_000), 'world', 0.001)
+    tracked = Responder(_route(Served.load(table_path, 'world'), tracker=True),
+                        Counters(DROP_REASONS, 0), _FakeLog(), time.time_ns, 'clamp',
+                        ('knee_flexion', 'knee_varus'), tracker)
+    tracked.handle_rigid(0, encode_pose_stamped(9, 100, 'world', identity))
+    assert tracked.last is None
+    tracked.handle_rigid(1, encode_pose_stamped(9, 200, 'world',
+                                                (0.0, 0.0, 0.0, o.x, o.y, o.z, o.w)))
+    assert tracked.last is not None and (tracked.last.sec, tracked.last.nanosec) == (9, 100)
+    assert _close(tracked.last.lookup.position_m, expected(table, msg).position_m)
+    world = tracked.route.reference_world_pub
+    assert isinstance(world, _FakePublisher) and len(world.sent) == 1
+
+
 def test_in_process_node_answers_and_reports(context: Any, table_path: Path) -> None:
     table = read_table(table_path)
     server = TableServer(context=context, parameter_overrides=[
@@ -626,3 +605,146 @@ def test_debug_logging_does_not_flood_when_idle(tmp_path: Path, domain_id: int,
         assert rate < 100.0, f'{rate:.0f} debug lines/s while idle'
     finally:
         srv.stop_clean()
+
+
+# ---- the rclpy internals kneeseat_ros.spin relies on ---------------------------------
+_PYBIND11_SIGNATURE = re.compile(r'^\w+\((?P<params>.*)\) -> (?P<returns>.+)$')
+_SUPPORTS = {'SupportsInt': 'int', 'SupportsIndex': 'int', 'SupportsFloat': 'float'}
+
+
+def _resolve(path: str) -> Any:
+    """The object at a dotted path: its longest importable module, then attributes."""
+    parts = path.split('.')
+    for cut in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module('.'.join(parts[:cut]))
+        except ImportError:
+            continue
+        for name in parts[cut:]:
+            obj = getattr(obj, name)
+        return obj
+    raise ImportError(f'no module of {path} can be imported')
+
+
+def _type_name(declared: str) -> str:
+    """A pybind11 type as RclpyInternal names it: 'typing.SupportsInt' -> 'int'."""
+    name = declared.split('=')[0].strip().rsplit('.', 1)[-1]
+    return _SUPPORTS.get(name, name)
+
+
+def _split_params(text: str) -> list[str]:
+    """The comma-separated parameters of a signature (commas inside brackets kept)."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(text):
+        depth += (ch in '[(') - (ch in '])')
+        if ch == ',' and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    return [p.strip() for p in [*parts, text[start:]] if p.strip()]
+
+
+def _internal_problem(internal: spin.RclpyInternal, live: dict[str, Any]) -> str | None:
+    """What differs between `internal` and the installed rclpy (None: nothing)."""
+    try:
+        owner = _resolve(internal.owner)
+        if internal.kind == 'attribute':
+            if internal.owner not in live:
+                return 'the test has no live instance of its owner: add one to `live`'
+            instance = live[internal.owner]
+            assert isinstance(instance, owner), f'{instance!r} is not a {owner}'
+            value = getattr(instance, internal.name)
+        else:
+            value = getattr(owner, internal.name)
+    except (ImportError, AttributeError) as err:
+        return f'missing ({err})'
+    want = internal.returns
+    if internal.kind == 'class':
+        if not (isinstance(value, type) and issubclass(value, _resolve(want))):
+            return f'{value!r} is no longer a class derived from {want}'
+    elif internal.kind == 'property':
+        if not isinstance(inspect.getattr_static(owner, internal.name), property):
+            return f'no longer a property ({type(value).__name__})'
+    elif internal.kind == 'attribute':
+        if not isinstance(value, _resolve(want)):
+            return f'is a {type(value).__name__}, not a {want}'
+    elif inspect.isfunction(value):           # Python: the parameters' names
+        got = tuple(inspect.signature(value).parameters)[1:]
+        if got != internal.params:
+            return f'parameters are now {got}, spin.py passes {internal.params}'
+    else:                                     # the C extension: pybind11's signature
+        first = (value.__doc__ or '').strip().splitlines()[:1]
+        match = _PYBIND11_SIGNATURE.match(first[0] if first else '')
+        if match is None:
+            return f'no pybind11 signature to check in its docstring ({first})'
+        got = tuple(_type_name(p.split(':', 1)[-1])
+                    for p in _split_params(match['params'])[1:])
+        returns = _type_name(match['returns'])
+        if got != internal.params or returns != want:
+            return (f'signature is now ({", ".join(got)}) -> {returns}, spin.py calls it as '
+                    f'({", ".join(internal.params)}) -> {want}')
+    return None
+
+
+def test_spin_rclpy_internals_are_still_there(context: Any) -> None:
+    """Every rclpy internal spin.py declares (spin.RCLPY_INTERNALS) has the shape spin.py
+    uses, the declaration lists every one spin.py's source touches, and spin's calls work
+    on a live subscription: wait on it, find it ready by pointer, drain its raw bytes."""
+    adapt = ('kneeseat_ros/spin.py relies on rclpy internals that changed in the installed '
+             'rclpy: adapt spin.py (and its RCLPY_INTERNALS) to it')
+    source = inspect.getsource(spin)
+    used = {*re.findall(r'_rclpy\.(\w+)', source), *re.findall(r'wait_set\.(\w+)', source),
+            *re.findall(r'handle\.(\w+)', source)}
+    declared = {name for i in spin.RCLPY_INTERNALS
+                for name in (i.name, i.owner.rsplit('.', 1)[-1])}
+    assert used <= declared, (f'spin.py uses {sorted(used - declared)} without declaring '
+                              'them in RCLPY_INTERNALS')
+    node = rclpy.create_node('rclpy_internals', context=context)
+    try:
+        sub = node.create_subscription(PoseStamped, 'internals', lambda msg: None, RELIABLE,
+                                       raw=True)
+        pub = node.create_publisher(PoseStamped, 'internals', RELIABLE)
+        guard = GuardCondition(None, None, context=context)
+        live = {'rclpy.subscription.Subscription': sub,
+                'rclpy.guard_condition.GuardCondition': guard,
+                'rclpy.context.Context': context}
+        # the checker itself tells a changed signature and a missing name
+        wait = next(i for i in spin.RCLPY_INTERNALS if i.name == 'wait')
+        assert _internal_problem(spin.RclpyInternal(wait.owner, 'wait', 'method', ('str',),
+                                                    'None'), live)
+        assert _internal_problem(spin.RclpyInternal(wait.owner, 'wait_for_ever', 'method'),
+                                 live)
+        problems = [f'{i.owner}.{i.name} (used in {i.use}): {problem}'
+                    for i in spin.RCLPY_INTERNALS
+                    if (problem := _internal_problem(i, live)) is not None]
+        assert not problems, adapt + ':\n' + '\n'.join(problems)
+        # spin.py's calls, as _wait_loop and drain make them
+        wait_set = _resolve(wait.owner)(1, 1, 0, 0, 0, 0, context.handle)
+        msg = pose_stamped((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), stamp_from_ns(7), 'femur')
+        deadline = time.monotonic() + 20.0
+        with sub.handle, guard.handle, context.handle:
+            ready: list[Any] = []
+            while sub.handle.pointer not in ready:      # published again until matched
+                assert time.monotonic() < deadline, (
+                    f'{adapt}: published messages never made the wait set report the '
+                    f'subscription ready (get_ready_entities gave {ready!r})')
+                pub.publish(msg)
+                wait_set.clear_entities()
+                wait_set.add_subscription(sub.handle)
+                wait_set.add_guard_condition(guard.handle)
+                wait_set.wait(200_000_000)
+                ready = wait_set.get_ready_entities('subscription')
+            taken: list[Any] = []
+            spin.drain(sub, taken.append)      # until take_message gives None
+            assert taken and all(isinstance(t, bytes) for t in taken), (
+                f'{adapt}: take_message(msg_type, raw=True) gave {taken!r}, not (bytes, '
+                'info) tuples, then None')
+            assert deserialize_message(taken[0], PoseStamped) == msg
+            guard.trigger()
+            wait_set.clear_entities()
+            wait_set.add_subscription(sub.handle)
+            wait_set.add_guard_condition(guard.handle)
+            wait_set.wait(10_000_000_000)
+            assert guard.handle.pointer in wait_set.get_ready_entities('guard_condition'), (
+                f'{adapt}: a triggered guard condition did not end the wait')
+    finally:
+        node.destroy_node()

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
-from test_table_server import RELIABLE, ServerProcess, TABLE_SERVER
+from ros_helpers import RELIABLE, rigid, ServerProcess, TABLE_SERVER
 import yaml
 
 from kneeseat_core.errors import ConfigError
@@ -29,10 +29,6 @@ from kneeseat_ros.conversions import pose_stamped, stamp_from_ns, stamp_ns
 from kneeseat_ros.tracker import compose, inverse, load_registration, Pairer, relative_rotation
 from kneeseat_ros.demos.tracker_demo import (example_registration, expected_world, leg_motion,
                                              pose_matrix, registration_yaml)
-
-
-def rigid(m: np.ndarray) -> tuple[float, ...]:
-    return (*m[:3, 3], *quat_from_matrix(m[:3, :3]))
 
 
 def matrix(r: tuple[float, ...]) -> np.ndarray:
