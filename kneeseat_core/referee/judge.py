@@ -31,14 +31,45 @@ from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 import trimesh
 
+from kneeseat_core.errors import NoContactError
 from kneeseat_core.typed import Floats, Pose
 
-__all__ = ['Envelope', 'Verdict', 'Referee']
+__all__ = ['Envelope', 'Verdict', 'Referee', 'RefereeTuning', 'REFEREE']
 
 # Penalty returned for a lateral state the climb may not take (outside the envelope).
 _REFUSED = 1e9
 # A gain at least this large counts as "climbs off": no contact within the travel limit.
 _OFF = 1e6
+
+
+@dataclass(frozen=True, slots=True)
+class RefereeTuning:
+    """Every number that steers the referee, in resolutions of the verdict (`REFEREE`).
+
+    Attributes:
+        travel_divisor: the travel is measured to one resolution divided by this
+            (bisection on boolean queries).
+        bracket_step: the first probe along the push when bracketing the contact...
+        bracket_cap: ...doubling up to this, so that no probe tunnels through a thin part.
+        simplex: Nelder-Mead starts from a simplex this wide on each coordinate: small
+            enough to follow a continuous ascent without hopping a ridge.
+        xatol, fatol: Nelder-Mead's stop tolerances on the state and on the travel.
+        restart_gain: the climb restarts from its best point until a restart gains no
+            more than this.
+        max_evaluations: travel evaluations per verdict, over all restarts.
+    """
+
+    travel_divisor: float = 10.0
+    bracket_step: float = 1.0
+    bracket_cap: float = 4.0
+    simplex: float = 2.0
+    xatol: float = 0.05
+    fatol: float = 0.02
+    restart_gain: float = 0.02
+    max_evaluations: int = 1500
+
+
+REFEREE = RefereeTuning()
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,7 +130,9 @@ class Referee:
     """
 
     def __init__(self, fixed: Sequence[trimesh.Trimesh], moving: Sequence[trimesh.Trimesh],
-                 push: Floats, resolution_m: float, locked_slide: Floats | None = None) -> None:
+                 push: Floats, resolution_m: float, locked_slide: Floats | None = None,
+                 tuning: RefereeTuning = REFEREE) -> None:
+        self.tuning = tuning
         self._fixed = fcl.CollisionObject(_bvh(fixed), fcl.Transform())
         self._moving = fcl.CollisionObject(_bvh(moving), fcl.Transform())
         self._request = fcl.CollisionRequest()
@@ -117,7 +150,7 @@ class Referee:
         self._free = np.array([0.0 if locked_slide is not None else 1.0, 1.0, 1.0])
         self._dims = np.flatnonzero(self._free)     # the coordinates the climb moves
         self.resolution_m = float(resolution_m)
-        self.tolerance_m = self.resolution_m / 10.0
+        self.tolerance_m = self.resolution_m / tuning.travel_divisor
         self.queries = 0
         extent = np.ptp(points, axis=0).max()
         fixed_pts = np.concatenate([np.asarray(m.vertices) for m in fixed])
@@ -158,7 +191,9 @@ class Referee:
         Positive: `pose` is free and may advance that far; negative: it overlaps and must
         retreat that far to be free. +inf: no contact within the travel limit.
         """
-        step, cap = self.resolution_m, 4.0 * self.resolution_m   # cap: no tunnelling
+        tuning = self.tuning
+        res = self.resolution_m
+        step, cap = tuning.bracket_step * res, tuning.bracket_cap * res   # cap: no tunnelling
         if not self.collides(pose):
             free = 0.0
             while True:
@@ -189,15 +224,26 @@ class Referee:
 
     # ---- the climb ----------------------------------------------------------------
     def judge(self, pose: Pose, envelope: Envelope | None = None,
-              max_evaluations: int = 1500) -> Verdict:
-        """Climb the travel from `pose` and report what it gains (see the module)."""
+              max_evaluations: int | None = None) -> Verdict:
+        """Climb the travel from `pose` and report what it gains (see the module).
+
+        Args:
+            pose: (4, 4) fixed_from_moving, the pose to judge (m).
+            envelope: bounds the climb when given (states outside it are refused).
+            max_evaluations: travel evaluations over all restarts (default: the tuning's).
+        Raises:
+            NoContactError: the pose has no contact along the push: nothing to judge.
+        """
         pose = np.asarray(pose, dtype=np.float64)
+        tuning = self.tuning
+        if max_evaluations is None:
+            max_evaluations = tuning.max_evaluations
         arm = max(self._arm(pose), self.resolution_m)
         queries_before = self.queries
         res = self.resolution_m
         base_travel = self.travel(pose)
         if not math.isfinite(base_travel):
-            raise ValueError('the pose has no contact along the push; nothing to judge')
+            raise NoContactError(self._limit)      # nothing to judge
         evaluations = 1
         best = _Best(base_travel, np.zeros(3))
 
@@ -219,11 +265,12 @@ class Referee:
         start = np.zeros(len(self._dims))
         while evaluations < max_evaluations:
             before = best.value
-            simplex = np.vstack([start, start + 2.0 * np.eye(len(start))])
+            simplex = np.vstack([start, start + tuning.simplex * np.eye(len(start))])
             minimize(value, start, method='Nelder-Mead',
-                     options={'initial_simplex': simplex, 'xatol': 0.05, 'fatol': 0.02,
+                     options={'initial_simplex': simplex, 'xatol': tuning.xatol,
+                              'fatol': tuning.fatol,
                               'maxfev': max_evaluations - evaluations})
-            if best.value >= _OFF or best.value - before <= 0.02 * res:
+            if best.value >= _OFF or best.value - before <= tuning.restart_gain * res:
                 break
             start = best.state[self._dims] / res
         state = best.state

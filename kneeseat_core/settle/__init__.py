@@ -58,6 +58,7 @@ from kneeseat_core.typed import Pose
 from .climb import run_climb
 from .patent import run_patent
 from .search import Contacts, Search, SettleResult
+from .tuning import TUNING
 
 __all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'settle']
 
@@ -85,7 +86,8 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
                     start if anchor is None else np.asarray(anchor, dtype=np.float64))
     pose = search.back_out(start)
     limit = search.travel_limit(pose)
-    tol = params.resolution_m if params.method == 'patent' else params.resolution_m / 4.0
+    tol = params.resolution_m if params.method == 'patent' \
+        else TUNING.contact_tol_res * params.resolution_m
     bracket = search.drop(pose, tol, limit)
     if bracket is None:
         raise NoContactError(limit)

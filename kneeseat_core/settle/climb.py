@@ -1,4 +1,4 @@
-"""`--method default`: the patent's loop carried to a true rest pose (see kneeseat_core/settle.py).
+"""`--method default`: the patent's loop carried to a true rest pose (see kneeseat_core.settle).
 
 Rest is a local maximum of the travel s: how far the body goes along the push Δ before it
 touches, as a function of the lateral state (slides across Δ and a spin about an axis
@@ -24,10 +24,13 @@ over a small state object (`_Climb`):
 - the envelope: the climb may not leave it (D6); where the envelope holds (a config's
   soft-tissue stand-in), the move is kept inside and a rest on its boundary is
   reported as constrained.
+Each step returns what happened (`_Outcome`: the next step's length, and the end when the
+climb must stop); `run_climb` is the only place that applies it. Every number that steers
+the climb is in `kneeseat_core.settle.tuning`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import itertools
 import math
 import time
@@ -38,35 +41,24 @@ from kneeseat_core.status import Status
 from kneeseat_core.typed import Floats, Pose
 from .hull import min_norm_point
 from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
+from .tuning import SettleTuning, TUNING
 
 __all__ = ['run_climb']
 
-# A move must deliver this share of the gain its slope promised, measured to an eighth of
-# the promise, or it is undone (so a slope the normals promise but the surfaces do not have
-# is never followed far; a move to the crest of a smooth slope keeps half its promise).
-PROMISE = 0.25
-# The finest contact tolerance a move measures its gain with, in resolutions.
-FINEST_TOL = 1.0 / 1024.0
-# Probe scales, in finest moves (the finest move: one resolution of slide, or a spin
-# whose arc at the farthest vertex is one rotation resolution).
-PROBE_SCALES = (1.0, 4.0, 16.0)
-# A probe succeeds when the moved body is still free lifted by this many resolutions.
-PROBE_LIFT = 0.25
-# Before probing, the pose's contact bracket is narrowed to this many resolutions.
-FINE_PROBE = 1.0 / 64.0
-# A probe that the near-active patches' first-order model says loses more than this many
-# resolutions (beyond the lift) is not sent to python-fcl, per probe scale: normals would
-# have to be off by tens of degrees, or the surface fold over within the probe, to hide a
-# gain behind such a loss.
-HOPELESS_RESOLUTIONS = {1.0: 1.0, 4.0: 1.0, 16.0: 5.0}
-# The longest single move, in translation steps.
-MAX_MOVE_STEPS = 4.0
-# Before rest is probed, the contact bracket is narrowed to this fraction of the tolerance,
-# so that a patch only near contact (it would balance the hull by itself) drops out.
-FINE = 0.25
-
+# The probe directions: every combination of -1, 0, +1 on (slide e1, slide e2, arc), unit.
 _DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)])
 _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
+
+End = tuple[int, str]    # (Status code, reason)
+
+
+@dataclass(frozen=True, slots=True)
+class _Outcome:
+    """What one step of the climb did: the length of the next move, and the end when the
+    climb must stop there (lost contact, left the search envelope)."""
+
+    step: float
+    end: End | None = None
 
 
 @dataclass(slots=True, eq=False)
@@ -74,21 +66,42 @@ class _Climb:
     """The state of one climb and its four steps."""
 
     search: Search
-    pose: Pose                 # at contact: free, within `tol` of touching
-    touching: Pose             # `pose` moved along Δ until it touches
-    floor: Contacts            # contact patches at `touching`
+    tuning: SettleTuning
     arm: float                 # m of arc per radian of spin (the farthest vertex)
     tol: float                 # exact-contact tolerance along Δ (m)
     flat: float                # slope at or below which the contacts count as balanced
     finest: float              # the finest move (m of slide or arc)
+    pose: Pose                 # at contact: free, within `tol` of touching
+    touching: Pose             # `pose` moved along Δ until it touches
+    floor: Contacts            # contact patches at `touching`
     step: float                # length of the next move (m)
-    best: float                # deepest depth reached so far (m along Δ)
-    learned: Contacts          # blocking patches taught by a rejected move
+    learned: Contacts = field(default_factory=Contacts.empty)   # taught by a rejected move
     proof_checks: int = 0
     proof_s: float = 0.0
     stalled_at: Pose | None = None   # where the climb last ran out of moves
-    ended: tuple[int, str] | None = None   # (Status code, reason) once the climb must stop
     trusted: bool = False      # the last measured move kept its promise (see `move`)
+
+    @classmethod
+    def start(cls, search: Search, bracket: Bracket, tuning: SettleTuning) -> _Climb:
+        """The climb from the first exact contact `bracket`, its scales derived from the
+        settle's parameters (D4: the rotation resolution is an arc at the farthest vertex
+        unless given)."""
+        p = search.params
+        arm = max(search.pair.moving.reach, p.step_m)
+        rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
+            else p.resolution_m / arm
+        return cls(search=search, tuning=tuning, arm=arm,
+                   tol=tuning.contact_tol_res * p.resolution_m,
+                   # a slope that cannot gain one resolution across the whole envelope
+                   flat=p.resolution_m / max(p.max_slide_m, p.max_spin_rad * arm),
+                   finest=min(p.resolution_m, rot_res * arm),
+                   pose=bracket.free, touching=bracket.touching,
+                   floor=search.patches(bracket.touching), step=p.step_m)
+
+    @property
+    def has_step(self) -> bool:
+        """A move of at least the shortest length the climb makes is left."""
+        return self.step >= self.tuning.min_move * self.finest
 
     def _moved_since_stall(self) -> bool:
         """True unless the pose is within one finest move of where the climb last stalled."""
@@ -109,7 +122,7 @@ class _Climb:
         if not self._moved_since_stall():
             return None
         self.stalled_at = self.pose
-        if self.step >= 0.25 * self.finest and not self.sharpen():
+        if self.has_step and not self.sharpen():
             return None
         chosen = self.choose()
         if chosen is not None:
@@ -172,7 +185,7 @@ class _Climb:
         grads = self.gradients(facing)
         if len(grads) < 2 or not s.free[0]:
             return None
-        flat = np.linalg.norm(grads, axis=1) <= 2.0 * self.flat
+        flat = np.linalg.norm(grads, axis=1) <= self.tuning.crest_flat * self.flat
         if int(flat.sum()) != 1:
             return None
         lever = np.cross(s.push, facing.points[flat][0] - s.centre(self.pose))
@@ -189,80 +202,76 @@ class _Climb:
         return None
 
     def sharpen(self) -> bool:
-        """Narrow the contact bracket to `FINE` of the tolerance; True when the contact set
-        changed (a patch that was only near contact drops out and no longer balances)."""
-        s = self.search
-        fine = self.tol * FINE
-        gap = s.depth(self.touching) - s.depth(self.pose)
-        if gap <= fine:
+        """Narrow the contact bracket to `sharpen` of the tolerance and take the patches
+        there; True when the contact set changed (a patch that was only near contact drops
+        out and no longer balances)."""
+        fine = self.tol * self.tuning.sharpen
+        if self._gap() <= fine:
             return False
-        lo, hi = s.bisect_along(self.pose, 0.0, gap, fine)
-        self.pose = translated(self.pose, lo * s.push)
-        self.touching = translated(self.pose, (hi - lo) * s.push)
+        self._narrow(fine, rebase=True)
         before = len(self.floor)
-        self.floor = s.patches(self.touching)
-        self.best = max(self.best, s.depth(self.pose))
+        self.floor = self.search.patches(self.touching)
         return len(self.floor) != before
 
-    def move(self, direction: Floats, slope: float) -> None:
-        """One line-search step along `direction` (sets `ended` when the climb must stop).
+    def move(self, direction: Floats, slope: float) -> _Outcome:
+        """One line-search step along `direction`.
 
-        A move is kept only if it delivers `PROMISE` of the gain its slope promised,
+        A move is kept only if it delivers `promise` of the gain its slope promised,
         measured: one query asks whether the moved body, lifted by that much (plus what
         the current pose's own bracket leaves open), is still free. The current bracket is
-        narrowed first to an eighth of the promise, so a promise of a few micrometres is
-        held to a fraction of one and a promise of a millimetre to a quarter resolution.
+        narrowed first to `measure` of the promise, so a promise of a few micrometres is
+        held to a fraction of one and a promise of a millimetre to the contact tolerance.
         A promise too small to measure is taken on trust (it only has to not lose depth),
         and only while the last measured promise was kept: normals that promised a slope
         the surfaces do not have are not followed through the flats they stand on.
         """
-        s = self.search
+        s, t = self.search, self.tuning
         length = self._room(direction, self.step)
-        if length < 0.25 * self.finest:
-            self.step = 0.0
-            return
+        if length < t.min_move * self.finest:
+            return _Outcome(0.0)                       # the step has run out
         promised = length * slope
-        floor_tol = FINEST_TOL * s.params.resolution_m
-        tau = min(self.tol, max(0.125 * promised, floor_tol))
+        floor_tol = t.finest_tol_res * s.params.resolution_m
+        tau = min(self.tol, max(t.measure * promised, floor_tol))
         width = self._narrow(tau)
         target = s.lateral(self.pose, length * direction, self.arm)
-        measured = promised >= 8.0 * floor_tol
+        measured = promised >= t.measurable * floor_tol
         if not (measured or self.trusted):
-            self.step = 0.5 * length
-            return
-        kept = PROMISE * promised + width if measured else -width
+            return _Outcome(t.untrusted_cut * length)
+        kept = t.promise * promised + width if measured else -width
         lifted = translated(target, kept * s.push)
         if s.collides(lifted):
-            # the move kept less than its promise: past the crest, a contact the patches
-            # did not know (D2: learn it, so that the next direction respects it), or a
-            # slope the normals promise but the surfaces do not have; shorten it
-            floor = s.patches(lifted)
-            grads = self.gradients(floor, target)
-            new_slope = float(np.min(grads @ direction)) if len(grads) else 0.0
-            blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
-            facing = s.facing(floor, s.push)
-            self.learned = self.learned + Contacts(facing.points[blocking],
-                                                   facing.normals[blocking])
-            if measured and new_slope >= 0.5 * slope:
-                # nothing blocks and the normals there still promise the slope (this is
-                # no overshoot of a crest): the surfaces do not have that slope
-                self.trusted = False
-            self.step = length * min(self._crest(slope, new_slope, shrink=0.25), 0.5)
-            return
+            return self._blocked(direction, slope, length, measured, lifted, target)
         bracket = s.touch(lifted, max(promised - kept, 0.0), tau, free_at_start=True)
         if bracket is None:
-            self.ended = (Status.LOST, LOST_CONTACT)
-            return
+            return _Outcome(self.step, (Status.LOST, LOST_CONTACT))
         floor = self._floor_at(bracket.free)
         grads = self.gradients(floor, bracket.free)
         new_slope = float(np.min(grads @ direction)) if len(grads) else slope
         if measured:
             self.trusted = True           # the surfaces kept a measured promise
-        self._arrive(bracket, floor)
-        if new_slope >= 0.5 * slope:
-            self.step = min(2.0 * length, MAX_MOVE_STEPS * s.params.step_m)
-        else:
-            self.step = length * self._crest(slope, new_slope, shrink=0.25)
+        end = self._arrive(bracket, floor)
+        if new_slope >= t.steep * slope:
+            return _Outcome(min(t.grow * length, t.max_move_steps * s.params.step_m), end)
+        return _Outcome(length * self._crest(slope, new_slope), end)
+
+    def _blocked(self, direction: Floats, slope: float, length: float, measured: bool,
+                 lifted: Pose, target: Pose) -> _Outcome:
+        """The move kept less than its promise: past the crest, a contact the patches did
+        not know (D2: learn it, so that the next direction respects it), or a slope the
+        normals promise but the surfaces do not have; the next step is shorter."""
+        s, t = self.search, self.tuning
+        floor = s.patches(lifted)
+        grads = self.gradients(floor, target)
+        new_slope = float(np.min(grads @ direction)) if len(grads) else 0.0
+        blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
+        facing = s.facing(floor, s.push)
+        self.learned = self.learned + Contacts(facing.points[blocking],
+                                               facing.normals[blocking])
+        if measured and new_slope >= t.steep * slope:
+            # nothing blocks and the normals there still promise the slope (this is
+            # no overshoot of a crest): the surfaces do not have that slope
+            self.trusted = False
+        return _Outcome(length * min(self._crest(slope, new_slope), t.blocked_cap))
 
     def _floor_at(self, free: Pose) -> Contacts:
         """The contact patches within the contact tolerance of the free pose `free` (the
@@ -270,57 +279,65 @@ class _Climb:
         s = self.search
         return s.patches(translated(free, self.tol * s.push))
 
-    def _narrow(self, tau: float) -> float:
+    def _gap(self) -> float:
+        """How far the current pose is from touching along Δ (m): its bracket's width."""
+        return self.search.depth(self.touching) - self.search.depth(self.pose)
+
+    def _narrow(self, tau: float, rebase: bool = False) -> float:
         """Narrow the current pose's contact bracket to at most `tau` (the patches stay);
-        return its width."""
+        return its width (m). With `rebase` the touching pose is placed from the narrowed
+        pose rather than from the old one: another rounding, which `sharpen` keeps because
+        the tables' bits depend on it (measured: the total knee's table differs in 1,074
+        cells, 12 of them by more than the resolution, when both use one rounding)."""
         s = self.search
-        gap = s.depth(self.touching) - s.depth(self.pose)
+        gap = self._gap()
         if gap <= tau:
             return gap
         lo, hi = s.bisect_along(self.pose, 0.0, gap, tau)
-        self.touching = translated(self.pose, hi * s.push)
-        self.pose = translated(self.pose, lo * s.push)
-        self.best = max(self.best, s.depth(self.pose))
+        if rebase:
+            self.pose = translated(self.pose, lo * s.push)
+            self.touching = translated(self.pose, (hi - lo) * s.push)
+        else:
+            self.touching = translated(self.pose, hi * s.push)
+            self.pose = translated(self.pose, lo * s.push)
         return hi - lo
 
-    def _arrive(self, bracket: Bracket, floor: Contacts) -> None:
+    def _arrive(self, bracket: Bracket, floor: Contacts) -> End | None:
         """Take the pose of `bracket`; outside the search envelope the climb ends."""
         s = self.search
         self.pose, self.touching, self.floor = bracket.free, bracket.touching, floor
         self.learned = Contacts.empty()
-        self.best = max(self.best, s.depth(self.pose))
         outside = None if s.params.envelope_holds else s.beyond_envelope(self.pose)
-        if outside:
-            self.ended = (Status.ENVELOPE, outside)
+        return (Status.ENVELOPE, outside) if outside else None
 
-    @staticmethod
-    def _crest(slope: float, new_slope: float, shrink: float) -> float:
-        """Fraction of the last move at which the slope would reach zero (secant)."""
+    def _crest(self, slope: float, new_slope: float) -> float:
+        """Share of the last move at which the slope would reach zero (secant), at least
+        `crest_floor`."""
         if new_slope >= slope:
             return 1.0
-        return min(max(slope / (slope - new_slope), shrink), 1.0)
+        return min(max(slope / (slope - new_slope), self.tuning.crest_floor), 1.0)
 
-    def prove(self) -> bool:
-        """D5: probe around the pose; True when a probe gained (and was followed, or the
-        climb ended), False at rest."""
-        s = self.search
-        lift = PROBE_LIFT * s.params.resolution_m
+    def prove(self) -> _Outcome | None:
+        """D5: probe around the pose; the outcome when a probe gained (it was followed, or
+        the climb ended), None at rest."""
+        s, t = self.search, self.tuning
+        lift = t.probe_lift_res * s.params.resolution_m
         checks_before, started = s.pair.checks, time.perf_counter()
         # the pose's own bracket is narrowed first, so a probe free at the lift has gained
         # at least the lift less a sliver: every probe that succeeds is real progress
-        self._narrow(FINE_PROBE * s.params.resolution_m)
+        self._narrow(t.probe_bracket_res * s.params.resolution_m)
         grads = self.gradients(self.floor)
         directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
         model = np.min(grads @ directions.T, axis=0) if len(grads) \
             else np.zeros(len(directions))
         order = np.argsort(-model)                       # most promising first
         try:
-            for scale in PROBE_SCALES:
+            for scale, hopeless_res in zip(t.probe_scales_moves, t.hopeless_res):
                 length = scale * self.finest
                 # the near-active patches bound the travel after the probe by
                 # tol + length * model (plus curvature); where that is short of the lift by
                 # a wide margin, the probe cannot gain: no query needed
-                margin = HOPELESS_RESOLUTIONS[scale] * s.params.resolution_m
+                margin = hopeless_res * s.params.resolution_m
                 hopeless = length * model < lift - self.tol - margin
                 for d in directions[order[~hopeless[order]]]:
                     if s.params.envelope_holds and \
@@ -329,66 +346,63 @@ class _Climb:
                     cand = s.lateral(self.pose, length * d, self.arm)
                     if s.collides(translated(cand, lift * s.push)):
                         continue
-                    self._follow(d, length, lift)
-                    return True
+                    return self._follow(d, length, lift)
         finally:
             self.proof_checks += s.pair.checks - checks_before
             self.proof_s += time.perf_counter() - started
-        return False
+        return None
 
-    def _follow(self, direction: Floats, length: float, lift: float) -> None:
+    def _follow(self, direction: Floats, length: float, lift: float) -> _Outcome:
         """A probe gained: follow its direction outward while it keeps gaining (a pattern
         move), and continue from the best pose found."""
-        s = self.search
+        s, t = self.search, self.tuning
         best: Bracket | None = None
         while True:
             target = s.lateral(self.pose, length * direction, self.arm)
             bracket = s.touch(translated(target, lift * s.push), 0.0, self.tol)
             if bracket is None:
                 if best is None:
-                    self.ended = (Status.LOST, LOST_CONTACT)
-                    return
+                    return _Outcome(self.step, (Status.LOST, LOST_CONTACT))
                 break
             if best is not None and s.depth(bracket.free) <= s.depth(best.free) + self.tol:
                 break
             best = bracket
-            grown = self._room(direction, 2.0 * length)
-            if grown <= length or grown > MAX_MOVE_STEPS * s.params.step_m:
+            grown = self._room(direction, t.follow_grow * length)
+            if grown <= length or grown > t.max_move_steps * s.params.step_m:
                 break
             length = grown
-        self._arrive(best, self._floor_at(best.free))
-        self.step = max(self.step, 2.0 * self.finest)
+        end = self._arrive(best, self._floor_at(best.free))
+        return _Outcome(max(self.step, t.resume_moves * self.finest), end)
 
 
-def run_climb(search: Search, bracket: Bracket) -> SettleResult:
+def run_climb(search: Search, bracket: Bracket, tuning: SettleTuning = TUNING) -> SettleResult:
     """Climb from the first exact contact `bracket` to a rest pose (module docstring)."""
     p = search.params
-    arm = max(search.pair.moving.reach, p.step_m)
-    rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
-        else p.resolution_m / arm
-    tol = p.resolution_m / 4.0
-    finest = min(p.resolution_m, rot_res * arm)
-    # a slope that cannot gain one resolution across the whole envelope is flat
-    flat = p.resolution_m / max(p.max_slide_m, p.max_spin_rad * arm)
-    climb = _Climb(search, bracket.free, bracket.touching, search.patches(bracket.touching),
-                   arm, tol, flat, finest, p.step_m, search.depth(bracket.free),
-                   Contacts.empty())
-    while climb.ended is None and search.iterations < p.max_iterations:
+    climb = _Climb.start(search, bracket, tuning)
+    end: End | None = None
+    while end is None and search.iterations < p.max_iterations:
         search.iterations += 1
-        chosen = climb.choose() if climb.step >= 0.25 * finest else None
+        chosen = climb.choose() if climb.has_step else None
         if chosen is None:
             chosen = climb.resume()
-        if chosen is not None:
-            climb.move(*chosen)
-        elif not climb.prove():
-            bound = (search.on_boundary(climb.pose, climb.finest, climb.arm)
-                     if p.envelope_holds else None)
-            climb.ended = (
-                (Status.CONSTRAINED, f'rest on the envelope boundary ({bound}): nothing inside '
-                 'the envelope gains more than the resolution along the push') if bound else
-                (Status.REST, 'rest: no slide, spin about the push or combination, short or '
-                 'long, gains more than the resolution along the push'))
-    status, reason = climb.ended or (
+        outcome = climb.move(*chosen) if chosen is not None else climb.prove()
+        if outcome is None:
+            end = _at_rest(search, climb)
+        else:
+            climb.step, end = outcome.step, outcome.end
+    status, reason = end or (
         Status.CAP, f'iteration cap ({p.max_iterations}) reached before rest was verified')
     return search.result(climb.pose, status, reason, climb.floor,
                          proof_checks=climb.proof_checks, proof_s=climb.proof_s)
+
+
+def _at_rest(search: Search, climb: _Climb) -> End:
+    """The end of a climb whose proof found nothing that gains: a plain rest, or a rest on
+    the boundary of an envelope that holds."""
+    bound = (search.on_boundary(climb.pose, climb.finest, climb.arm)
+             if search.params.envelope_holds else None)
+    if bound:
+        return (Status.CONSTRAINED, f'rest on the envelope boundary ({bound}): nothing inside '
+                'the envelope gains more than the resolution along the push')
+    return (Status.REST, 'rest: no slide, spin about the push or combination, short or '
+            'long, gains more than the resolution along the push')

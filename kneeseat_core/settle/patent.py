@@ -96,10 +96,11 @@ def run_patent(search: Search, bracket: Bracket) -> SettleResult:
             if state.rotate(*found):
                 continue
         else:
-            stopped = state.slide(facing)
-            if isinstance(stopped, SettleResult):
-                return stopped
-            if stopped:
+            slide = state.slide_for(facing)
+            if np.linalg.norm(slide) < p.resolution_m:
+                return search.result(state.pose, Status.REST, 'stable: the resultant of the '
+                                     'projected normals is below the resolution', facing)
+            if state.slide(slide):
                 continue
         ended = state.fall()
         if ended is not None:
@@ -151,16 +152,18 @@ class _Patent:
         self.motion = motion * sign if np.linalg.norm(motion) > 0 else s.push
         return True
 
-    def slide(self, facing: Contacts) -> SettleResult | bool:
-        """Step 4: slide by the step times the component-wise resultant; the rest when that
-        slide is shorter than the resolution, True when it collided (stopped at contact)."""
+    def slide_for(self, facing: Contacts) -> Floats:
+        """Step 4's slide (3,): the step times the component-wise resultant of `facing`,
+        without its locked part; the body is at rest when it is shorter than T2."""
         s, p = self.search, self.search.params
         slide = _component_resultant(s, facing) * p.step_m
         if p.locked_slide is not None:
             slide -= (slide @ s.e1) * s.e1
-        if np.linalg.norm(slide) < p.resolution_m:
-            return s.result(self.pose, Status.REST, 'stable: the resultant of the projected '
-                            'normals is below the resolution', facing)
+        return slide
+
+    def slide(self, slide: Floats) -> bool:
+        """Step 4: make the slide; True when it collided (then stopped at exact contact)."""
+        s, p = self.search, self.search.params
         base = self.pose
 
         def shift(f: float) -> Pose:
