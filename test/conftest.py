@@ -363,3 +363,25 @@ def install_env(prefix: Path, base: dict[str, str] | None = None) -> dict[str, s
         [str(prefix), *[p for p in ament if p != str(prefix)],
          *([] if sys.prefix in ament else [sys.prefix])])
     return env
+
+
+def assert_same_poses(ours: Path, theirs: Path) -> None:
+    """The two bags hold the same messages (topic, times, header, position: exact) with
+    orientations equal to within two units in the last place: numpy's vectorised sin and
+    cos differ by one between CPUs with AVX-512 and without."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+
+    def poses(bag: Path) -> list[tuple[str, int, Any]]:
+        with Reader(bag) as reader:
+            return [(c.topic, t, store.deserialize_cdr(raw, c.msgtype))
+                    for c, t, raw in reader.messages()]
+
+    a, b = poses(ours), poses(theirs)
+    assert len(a) == len(b)
+    for (topic, t, msg), (topic2, t2, msg2) in zip(a, b):
+        assert (topic, t) == (topic2, t2)
+        assert msg.header == msg2.header and msg.pose.position == msg2.pose.position
+        q, q2 = msg.pose.orientation, msg2.pose.orientation
+        assert np.allclose([q.x, q.y, q.z, q.w], [q2.x, q2.y, q2.z, q2.w], rtol=0, atol=4.5e-16)

@@ -173,14 +173,11 @@ def test_damaged_or_other_grid_table_is_rebuilt(tmp_path: Path) -> None:
 
 
 def test_regenerated_bag_equals_shipped(tmp_path: Path) -> None:
-    from conftest import synthetic_table
+    from conftest import assert_same_poses, synthetic_table
     table = synthetic_table()
     bag = demo_bag(tmp_path, table, shipped=tmp_path / 'no_repo')
     assert bag == tmp_path / 'angle_bags' / 'gait_demo'
-    ours = load_messages(bag)
-    theirs = load_messages(SHIPPED)
-    assert [(m.topic, m.data, m.log_time_ns) for m in ours] == \
-        [(m.topic, m.data, m.log_time_ns) for m in theirs]
+    assert_same_poses(bag, SHIPPED)
     assert demo_bag(tmp_path, table, shipped=tmp_path / 'no_repo') == bag    # reused
     assert demo_bag(tmp_path, table) == SHIPPED
 

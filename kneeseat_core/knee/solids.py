@@ -3,7 +3,8 @@
 `polar_solid` makes a closed, consistently wound triangle mesh between two height fields
 over the unit disc (a polar grid, a fan at each pole and a rim wall); `smooth_max`,
 `soft_cap`, `smoothstep` and `superellipse_scale` blend and round the surfaces smoothly,
-so that the meshes made from them have no creases a settle would catch on.
+so that the meshes made from them have no creases a settle would catch on. Their
+transcendental functions are `libm`'s, so that the bytes are the same on every machine.
 """
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from kneeseat_core import libm
 from kneeseat_core.typed import Floats, Ints
 
 __all__ = ['HeightField', 'polar_solid', 'smooth_max', 'soft_cap', 'smoothstep',
@@ -18,17 +20,17 @@ __all__ = ['HeightField', 'polar_solid', 'smooth_max', 'soft_cap', 'smoothstep',
 
 
 def smooth_max(parts: list[Floats], k: float) -> Floats:
-    """Log-sum-exp maximum of same-shaped arrays: at most ln(n)/k above the max (k in
-    1/unit of the arrays)."""
-    stack = np.stack(parts)
+    """Log-sum-exp maximum of arrays that broadcast together: at most ln(n)/k above the max
+    (k in 1/unit of the arrays)."""
+    stack = np.stack(np.broadcast_arrays(*parts))
     top = stack.max(axis=0)
-    out: Floats = top + np.log(np.exp(k * (stack - top)).sum(axis=0)) / k
+    out: Floats = top + libm.log(libm.exp(k * (stack - top)).sum(axis=0)) / k
     return out
 
 
 def soft_cap(value: Floats, cap: Floats | float, k: float) -> Floats:
     """Smooth minimum of `value` and `cap`: -log(exp(-k value) + exp(-k cap)) / k."""
-    return cap - np.logaddexp(0.0, k * (cap - value)) / k
+    return cap - libm.softplus(k * (cap - value)) / k
 
 
 def smoothstep(t: Floats) -> Floats:
@@ -39,8 +41,8 @@ def smoothstep(t: Floats) -> Floats:
 
 def superellipse_scale(u: Floats, power: float = 4.0) -> Floats:
     """(1 - |u|^p)^(1/p) for |u| < 1, else 0: flat in the middle, rounded at the ends."""
-    base = np.clip(1.0 - np.abs(u) ** power, 0.0, None)
-    return base ** (1.0 / power)
+    base = np.clip(1.0 - libm.power(np.abs(u), power), 0.0, None)
+    return libm.power(base, 1.0 / power)
 
 
 HeightField = Callable[[Floats, Floats], Floats]
@@ -64,7 +66,7 @@ def polar_solid(top_r: Floats, bottom_r: Floats, n_ang: int, top_h: HeightField,
     for rings, height, sign in ((top_r, top_h, 1), (bottom_r, bottom_h, -1)):
         rr, aa = np.meshgrid(rings, ang, indexing='ij')             # (n_rings, n_ang)
         pole_uv = np.zeros((1, 2))
-        uv = np.vstack([pole_uv, np.stack([rr * np.cos(aa), rr * np.sin(aa)], -1)
+        uv = np.vstack([pole_uv, np.stack([rr * libm.cos(aa), rr * libm.sin(aa)], -1)
                         .reshape(-1, 2)])
         h = np.concatenate([height(np.zeros(1), np.zeros(1)), height(rr, aa).reshape(-1)])
         idx = offset + 1 + np.arange(rr.size).reshape(rr.shape)

@@ -57,6 +57,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from kneeseat_core import libm
 from kneeseat_core.files import file_sha256, write_bytes
 from kneeseat_core.typed import Floats, Ints
 from .solids import polar_solid, smooth_max, smoothstep, soft_cap, superellipse_scale
@@ -135,7 +136,7 @@ _PATELLA_N_ANG, _PATELLA_N_FRONT, _PATELLA_N_BACK = 128, 24, 40
 
 def _ray_to_circle(phi: Floats, centre: tuple[float, float], radius: float) -> Floats:
     """Distance (mm) from the origin along direction `phi` to a circle enclosing the origin."""
-    ux, uy = np.cos(phi), np.sin(phi)
+    ux, uy = libm.cos(phi), libm.sin(phi)
     proj = ux * centre[0] + uy * centre[1]
     return proj + np.sqrt(proj * proj - (centre[0] ** 2 + centre[1] ** 2) + radius * radius)
 
@@ -151,24 +152,24 @@ def femur_radius_mm(phi: Floats, z: Floats) -> Floats:
     """Boundary radius (mm) of the femur's sagittal slice `z` (mm) in direction `phi` (rad).
 
     `phi` is measured about +Z from +X (anterior): -pi/2 is distal, +-pi posterior, +pi/2
-    up the shaft. Each slice is star-shaped about the flexion axis.
+    up the shaft. Each slice is star-shaped about the flexion axis. `phi` and `z` broadcast;
+    what depends on one of them alone is computed on it alone.
     """
-    phi, z = np.broadcast_arrays(np.asarray(phi, dtype=np.float64),
-                                 np.asarray(z, dtype=np.float64))
+    phi, z = np.asarray(phi, dtype=np.float64), np.asarray(z, dtype=np.float64)
     medial = _MED_SAG_R_MM - _coronal_drop(z, MEDIAL_CONDYLE_Z_MM, _MED_COR_R_MM)
     lateral = (_ray_to_circle(phi, _LAT_SAG_CENTRE_MM, _LAT_SAG_R_MM)
                - _coronal_drop(z, LATERAL_CONDYLE_Z_MM, _LAT_COR_R_MM))
-    core = np.full_like(phi, _CORE_R_MM)
+    core = np.full(np.broadcast_shapes(phi.shape, z.shape), _CORE_R_MM)
     # Trochlea: anterior only (fades out distally, before the notch), rounded at its ends.
     anterior = smoothstep((phi + np.radians(100.0)) / np.radians(25.0))
     anterior = anterior * (1.0 - smoothstep((phi - np.radians(110.0)) / np.radians(25.0)))
     width = superellipse_scale((z - _TROCH_Z_MM) / _TROCH_HALF_WIDTH_MM, 4.0)
-    groove = _GROOVE_DEPTH_MM * np.exp(-((z - _GROOVE_Z_MM) / _GROOVE_WIDTH_MM) ** 2)
+    groove = _GROOVE_DEPTH_MM * libm.exp(-((z - _GROOVE_Z_MM) / _GROOVE_WIDTH_MM) ** 2)
     facet = _LAT_FACET_RISE_MM * smoothstep((z - _GROOVE_Z_MM) / 20.0)
     trochlea = (_ray_to_circle(phi, _TROCH_CENTRE_MM, _TROCH_R_MM) + facet - groove)
     trochlea = trochlea * anterior * width
     # Shaft: a box [-a, a] x [0, top] in the slice, scaled down towards its ML ends.
-    s, c = np.sin(phi), np.cos(phi)
+    s, c = libm.sin(phi), libm.cos(phi)
     with np.errstate(divide='ignore'):
         to_top = np.where(s > 1e-9, _SHAFT_TOP_MM / np.where(s > 1e-9, s, 1.0), 0.0)
         to_side = _SHAFT_HALF_AP_MM / np.maximum(np.abs(c), 1e-9)
@@ -183,7 +184,7 @@ def _femur_mesh_mm() -> tuple[Floats, Ints]:
     phi = np.linspace(-np.pi, np.pi, _FEMUR_N_PHI, endpoint=False)
     zz, pp = np.meshgrid(z, phi, indexing='ij')                     # (nz, nphi)
     rho = femur_radius_mm(pp, zz)
-    ring = np.stack([rho * np.cos(pp), rho * np.sin(pp), zz], axis=-1).reshape(-1, 3)
+    ring = np.stack([rho * libm.cos(pp), rho * libm.sin(pp), zz], axis=-1).reshape(-1, 3)
     caps = np.array([[0.0, 0.0, z[0]], [0.0, 0.0, z[-1]]])
     vertices = np.vstack([ring, caps])
     nz, nphi = _FEMUR_N_Z, _FEMUR_N_PHI
@@ -230,14 +231,14 @@ def _dish(x: Floats, z: Floats, centre: tuple[float, float, float],
 
 def tibia_top_mm(x: Floats, z: Floats) -> Floats:
     """Height (mm) of the tibial plateau (before the rim rounding) at (x, z) mm."""
-    lateral_share = 1.0 / (1.0 + np.exp(-(z - 0.0) / 2.5))
+    lateral_share = 1.0 / (1.0 + libm.exp(-(z - 0.0) / 2.5))
     plateau = ((1.0 - lateral_share) * _dish(x, z, _MED_DISH_MM, _MED_DISH_SHAPE)
                + lateral_share * _dish(x, z, _LAT_DISH_MM, _LAT_DISH_SHAPE))
     sx, sz = _EMINENCE_SIGMA_MM
-    spines = sum(np.exp(-(z - zs) ** 2 / (2 * sz * sz)) for zs in _EMINENCE_SPINES_Z_MM)
+    spines = sum(libm.exp(-(z - zs) ** 2 / (2 * sz * sz)) for zs in _EMINENCE_SPINES_Z_MM)
     base = _MED_DISH_MM[2] + _EMINENCE_HEIGHT_MM
     eminence = base - (base - plateau) * (1.0 - np.minimum(
-        spines * np.exp(-x * x / (2 * sx * sx)), 1.0))
+        spines * libm.exp(-x * x / (2 * sx * sx)), 1.0))
     out: Floats = np.maximum(plateau, eminence)
     return out
 
@@ -247,14 +248,14 @@ def _tibia_mesh_mm() -> tuple[Floats, Ints]:
     ax, az = _TIBIA_SEMI_MM
 
     def top(r: Floats, ang: Floats) -> Floats:
-        x, z = cx + ax * r * np.cos(ang), cz + az * r * np.sin(ang)
+        x, z = cx + ax * r * libm.cos(ang), cz + az * r * libm.sin(ang)
         return tibia_top_mm(x, z) - _TIBIA_RIM_DROP_MM * smoothstep((r - 0.8) / 0.2) ** 2
 
     def bottom(r: Floats, ang: Floats) -> Floats:
-        x, z = cx + ax * np.cos(ang), cz + az * np.sin(ang)
+        x, z = cx + ax * libm.cos(ang), cz + az * libm.sin(ang)
         rim = tibia_top_mm(x, z) - _TIBIA_RIM_DROP_MM - _TIBIA_RIM_WALL_MM
         t = np.clip((r - _TIBIA_SHAFT_FRACTION) / (1.0 - _TIBIA_SHAFT_FRACTION), 0.0, 1.0)
-        flare = 1.0 - (1.0 - t) ** 5
+        flare = 1.0 - libm.power(1.0 - t, 5.0)
         return _TIBIA_SHAFT_END_MM + (rim - _TIBIA_SHAFT_END_MM) * flare
 
     top_r = np.linspace(0.0, 1.0, _TIBIA_N_TOP + 1)[1:]
@@ -284,7 +285,7 @@ def _trochlea_front_mm() -> tuple[Floats, Floats, Floats]:
     # patella's height range, so x is a function of y there.
     phi = np.linspace(np.radians(-45.0), np.radians(75.0), 2001)
     rho = femur_radius_mm(phi[None, :], z[:, None])                # (nz, nphi)
-    xs, ys = rho * np.cos(phi), rho * np.sin(phi)
+    xs, ys = rho * libm.cos(phi), rho * libm.sin(phi)
     x = np.stack([np.interp(y, ys[k], xs[k]) for k in range(len(z))])
     return z, y, x
 
@@ -308,7 +309,7 @@ def patella_back_mm(y: Floats, z: Floats) -> Floats:
     tz, ty = fz - iz, fy - iy
     front = ((1 - tz) * ((1 - ty) * x_s[iz, iy] + ty * x_s[iz, iy + 1])
              + tz * ((1 - ty) * x_s[iz + 1, iy] + ty * x_s[iz + 1, iy + 1]))
-    relief = _PATELLA_RIDGE_RELIEF_MM * np.exp(
+    relief = _PATELLA_RIDGE_RELIEF_MM * libm.exp(
         -((z - _GROOVE_Z_MM) / (0.8 * _GROOVE_WIDTH_MM)) ** 2)
     out: Floats = front + _PATELLA_GAP_MM + relief
     return out
@@ -319,13 +320,13 @@ def _patella_mesh_mm() -> tuple[Floats, Ints]:
     ay, az = _PATELLA_SEMI_MM
 
     def front(r: Floats, ang: Floats) -> Floats:
-        y, z = cy + ay * r * np.cos(ang), cz + az * r * np.sin(ang)
+        y, z = cy + ay * r * libm.cos(ang), cz + az * r * libm.sin(ang)
         dome = np.sqrt(np.clip(1.0 - r * r, 0.0, None))
         rim = patella_back_mm(y, z) + 0.25 * _PATELLA_THICKNESS_MM
-        return rim + 0.75 * _PATELLA_THICKNESS_MM * dome ** 0.7
+        return rim + 0.75 * _PATELLA_THICKNESS_MM * libm.power(dome, 0.7)
 
     def back(r: Floats, ang: Floats) -> Floats:
-        y, z = cy + ay * r * np.cos(ang), cz + az * r * np.sin(ang)
+        y, z = cy + ay * r * libm.cos(ang), cz + az * r * libm.sin(ang)
         return patella_back_mm(y, z) + 1.5 * smoothstep((r - 0.75) / 0.25) ** 2
 
     front_r = np.linspace(0.0, 1.0, _PATELLA_N_FRONT + 1)[1:]
