@@ -41,6 +41,15 @@ class SettleParams:
     max_slide_m: float = 0.02
     max_spin_rad: float = math.radians(45.0)
     envelope_holds: bool = False
+    # The load (N) when soft tissue acts on the body (the settle's `tissue`): rest is then
+    # a local maximum of the load's work minus the tissue's energy, per unit load (m).
+    # None: geometry alone (the travel). The load acts along the push unless `load_toward`
+    # (a point, fixed frame, m) is given: then it pulls the body's centroid toward that
+    # point, as a muscle toward its origin (a patella's quadriceps toward the femur, its
+    # tendon and retinacula holding it in the trochlea). The push is then only the
+    # direction contact is sought along.
+    load_n: float | None = None
+    load_toward: tuple[float, float, float] | None = None
 
     def check(self) -> None:
         """Raise SettleError naming the first invalid parameter."""
@@ -66,5 +75,10 @@ class SettleParams:
             if float(np.linalg.norm(lock - (lock @ push) * push)) < 0.1:
                 raise SettleError('the locked slide direction is (nearly) parallel to the push; '
                                   'give a direction across the push')
+        if self.load_n is not None and not (math.isfinite(self.load_n) and self.load_n > 0):
+            raise SettleError(f'load_n={self.load_n} must be a positive number of newtons')
+        if self.load_toward is not None and \
+                not np.all(np.isfinite(np.asarray(self.load_toward, dtype=float))):
+            raise SettleError(f'load_toward={self.load_toward} must be three finite numbers')
         if self.method not in ('default', 'patent'):
             raise SettleError(f"method '{self.method}' is unknown; use default or patent")

@@ -15,12 +15,14 @@ class Status:
     WEDGED = 5          # the patent method's slide/rotate cycle
     FAILED = 6          # no contact along the push, or a start buried in the fixed body
     UNKNOWN = 7         # not converged, reason not recorded (tables written before codes)
+    PULLED = 8          # its ligaments pull it off the fixed body against its load
 
 
 STATUS_NAMES = {Status.REST: 'rest', Status.CONSTRAINED: 'rest on the envelope boundary',
                 Status.ENVELOPE: 'left the search envelope', Status.LOST: 'lost contact',
                 Status.CAP: 'iteration cap', Status.WEDGED: 'wedged (patent)',
-                Status.FAILED: 'failed to settle', Status.UNKNOWN: 'not converged'}
+                Status.FAILED: 'failed to settle', Status.UNKNOWN: 'not converged',
+                Status.PULLED: 'pulled off by its ligaments'}
 
 # the codes of a converged cell: the table claims it is at rest
 AT_REST = (Status.REST, Status.CONSTRAINED)

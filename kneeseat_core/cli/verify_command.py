@@ -44,7 +44,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
 
 def _verify_table_cmd(args: argparse.Namespace) -> int:
-    from kneeseat_core.knee import config_from_metadata                      # trimesh
+    from kneeseat_core.knee import config_from_metadata, ligaments_from_metadata  # trimesh
     from kneeseat_core.meshes import check_mesh_files
     from kneeseat_core.referee import mesh_file, sample_cells, verify_table  # fcl, scipy
     from kneeseat_core.sweep import executor_for
@@ -63,6 +63,7 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
                         f"the folder that holds {Path(missing[0]).name} and the table's other "
                         f'meshes')
     check_mesh_files(paths, config.units)     # warnings once, here; workers load quietly
+    ligaments_from_metadata(table.metadata, args.mesh_dir)    # there, and the table's
     cells = sample_cells(table, args.sample, args.seed)
     resolution = float(table.metadata.get('settle', {}).get('resolution_m', 1e-4))
     executor, close = executor_for(args.workers, None)
@@ -70,7 +71,8 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
     try:
         with tqdm(total=len(cells), unit='cell', desc='verify', disable=args.quiet,
                   dynamic_ncols=True, file=sys.stderr) as bar:
-            for verdict in verify_table(args.table, cells, executor, args.mesh_dir, bar.update):
+            for verdict in verify_table(args.table, cells, executor, args.mesh_dir, bar.update,
+                                        extent=not args.no_extent):
                 verdicts.append(verdict)
     finally:
         close()
@@ -87,9 +89,14 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
         worst = max((v.gain_m for v in verdicts), default=0.0)
         unjudged = (f'; {unclaimed} cells of the table did not converge and claim no rest '
                     f'(kneeseat info lists them)' if unclaimed else '')
+        extents = [v for v in verdicts if v.extent_m is not None]
+        spread = '' if not extents else (
+            f'; within a resolution of their best the rests move up to '
+            f'{max(v.extent_m or 0.0 for v in extents) * 1e3:.2f} mm and '
+            f'{max(v.extent_deg or 0.0 for v in extents):.2f} deg')
         print(f'{len(verdicts)} cells claimed at rest judged: {len(bad)} gain more than the '
               f'resolution ({resolution * 1e3:g} mm); largest gain {worst * 1e3:.3f} mm'
-              f'{unjudged}')
+              f'{spread}{unjudged}')
     return EXIT_NOT_AT_REST if bad else EXIT_AT_REST
 
 
@@ -152,6 +159,9 @@ def register_command(sub: Subcommands) -> None:
     p.add_argument('--resolution', type=float, default=SettleParams().resolution_m,
                    help='one settle result: the resolution, m (1e-4)')
     p.add_argument('--units', choices=('m', 'mm'), default='m', help='units of both meshes')
+    p.add_argument('--no-extent', action='store_true',
+                   help='skip measuring how far each rest can move within one resolution '
+                   '(about half the time of the verdicts on a table)')
     p.add_argument('--json', action='store_true', help='print the verdicts as JSON')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(command=_cmd_verify)

@@ -44,12 +44,13 @@ import yaml
 
 from kneeseat_core.errors import ConfigError, SettleError, TableError
 from kneeseat_core.geometry import KneeAxes, pose_from, rotation_about, TOL, unit
+from kneeseat_core.ligaments import LigamentSet, load_ligaments, parse_ligaments
 from kneeseat_core.meshes import UNIT_SCALE, Units
 from kneeseat_core.params import SettleParams
 from kneeseat_core.typed import Floats, Pose
 
 __all__ = ['BodySpec', 'KneeConfig', 'load_config', 'grid_values', 'neutral_pose',
-           'config_from_metadata']
+           'config_from_metadata', 'ligaments_from_metadata']
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,6 +77,8 @@ class BodySpec:
     meshes: tuple[Path, ...] = ()
     display_meshes: tuple[Path, ...] = ()
     push_flexion_fraction: float | None = None   # None: the push turns with the attitude
+    load_n: float | None = None         # the load on the push (N), where ligaments act
+    load_toward: tuple[float, float, float] | None = None   # m, reference frame; None: push
 
     def __post_init__(self) -> None:
         if not self.meshes:
@@ -97,6 +100,7 @@ class KneeConfig:
     varus_rad: Floats            # (V,) ascending
     settle: SettleParams         # push is per body; this one's push is ignored
     source: dict[str, Any]       # the config as read (for the table's metadata)
+    ligaments: LigamentSet | None = None   # the soft tissue, if the config names it
 
     def attitude(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3, 3) attitude of `body` at a grid cell (module docstring)."""
@@ -138,7 +142,25 @@ class KneeConfig:
         if body.envelope is not None:
             params = replace(params, max_slide_m=body.envelope[0],
                              max_spin_rad=body.envelope[1], envelope_holds=True)
+        if body.load_n is not None:
+            params = replace(params, load_n=body.load_n, load_toward=body.load_toward)
         return params
+
+    def placed_before(self, body: BodySpec) -> tuple[str, ...]:
+        """The bodies already where they rest when `body` is settled at a cell: the
+        reference and the moving bodies before it in the config (a patella's tendon pulls
+        from the tibia's settled pose)."""
+        names = [self.reference.name] + [b.name for b in self.bodies]
+        return tuple(names[:names.index(body.name)])
+
+    def depends_on(self, body: BodySpec) -> tuple[int, ...]:
+        """Indices of the moving bodies whose settled poses `body`'s ligaments pull from."""
+        if self.ligaments is None:
+            return ()
+        placed = self.placed_before(body)
+        others = {end for f in self.ligaments.acting_on(body.name, placed)
+                  for end in f.ends} - {body.name, self.reference.name}
+        return tuple(i for i, b in enumerate(self.bodies) if b.name in others)
 
     def metadata(self) -> dict[str, Any]:
         """The config as plain JSON-able data, with resolved absolute mesh paths."""
@@ -149,6 +171,9 @@ class KneeConfig:
             'settle': asdict(self.settle),
             'flexion_deg': [math.degrees(v) for v in self.flexion_rad],
             'varus_deg': [math.degrees(v) for v in self.varus_rad],
+            'ligaments': None if self.ligaments is None else {
+                'source': self.ligaments.source, 'sha256': self.ligaments.sha256,
+                'fibres': len(self.ligaments.fibres), 'bundles': list(self.ligaments.bundles)},
         }
         return out
 
@@ -190,10 +215,39 @@ def _spec_from_dict(data: dict[str, Any], known: set[str]) -> BodySpec:
     d['display_mesh'] = None if d.get('display_mesh') is None else Path(d['display_mesh'])
     d['meshes'] = tuple(Path(m) for m in d.get('meshes') or ())
     d['display_meshes'] = tuple(Path(m) for m in d.get('display_meshes') or ())
-    for key in ('push', 'locked_slide', 'envelope'):
+    for key in ('push', 'locked_slide', 'envelope', 'load_toward'):
         if d.get(key) is not None:
             d[key] = tuple(float(x) for x in d[key])
     return BodySpec(**d)
+
+
+def ligaments_from_metadata(meta: dict[str, Any], mesh_dir: Path | None = None
+                            ) -> LigamentSet | None:
+    """The ligament set a table was built with, read again and checked against the SHA-256
+    its metadata records; None for a table built without. `mesh_dir`: where the file is
+    now, when it moved with the meshes.
+
+    Raises:
+        TableError: the file is missing or holds other ligaments than the table's.
+    """
+    entry = meta.get('config', {}).get('resolved', {}).get('ligaments')
+    if not entry:
+        return None
+    bodies = [meta['reference']['name']] + [b['name'] for b in meta['bodies']]
+    try:
+        if entry['source'] == 'inline':
+            found = parse_ligaments(meta['config']['ligaments'], 'ligaments', bodies,
+                                    meta['config'].get('units', 'm'))
+        else:
+            path = Path(entry['source'])
+            found = load_ligaments(Path(mesh_dir) / path.name if mesh_dir else path, bodies)
+    except ConfigError as err:
+        raise TableError(f"the table's ligaments cannot be read: {err}") from None
+    if found.sha256 != entry['sha256']:
+        raise TableError(f'{found.source} holds other ligaments than the table was built with '
+                         f"(SHA-256 {found.sha256[:12]}, the table's {entry['sha256'][:12]}); "
+                         'pass --mesh-dir with the folder of the original file')
+    return found
 
 
 def _spec_dict(spec: BodySpec) -> dict[str, Any]:
@@ -205,9 +259,11 @@ def _spec_dict(spec: BodySpec) -> dict[str, Any]:
     return d
 
 
-_TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle'}
+_TOP_KEYS = {'name', 'units', 'mesh_dir', 'reference', 'axes', 'bodies', 'grid', 'settle',
+             'ligaments'}
 _BODY_KEYS = {'name', 'frame', 'mesh', 'display_mesh', 'push', 'flexion_fraction',
-              'varus_fraction', 'locked_slide', 'envelope', 'push_flexion_fraction'}
+              'varus_fraction', 'locked_slide', 'envelope', 'push_flexion_fraction', 'load_n',
+              'load_toward'}
 _ENVELOPE_KEYS = {'max_slide_m', 'max_spin_deg'}
 _REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
 _GRID_KEYS = {'flexion_deg', 'varus_deg'}
@@ -245,6 +301,16 @@ def grid_values(spec: Any, where: str) -> Floats:
         raise ConfigError(f'{where}: {round(count) + 1} grid values is too many')
     values = np.linspace(start, stop, int(round(count)) + 1)
     return np.radians(np.sort(values))
+
+
+def _point(value: Any, where: str, scale: float) -> tuple[float, float, float]:
+    """Three finite numbers, in the config's units -> metres."""
+    if not (isinstance(value, list) and len(value) == 3
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                    for v in value)):
+        raise ConfigError(f'{where} must be three numbers like [0.04, 0.25, 0.01], got '
+                          f'{value!r}')
+    return float(value[0]) * scale, float(value[1]) * scale, float(value[2]) * scale
 
 
 def _vector(value: Any, where: str) -> tuple[float, float, float]:
@@ -285,7 +351,8 @@ def _mesh_paths(mesh_dir: Path, value: Any, where: str) -> tuple[Path, ...]:
     return paths
 
 
-def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
+def _body(data: Any, mesh_dir: Path, where: str, moving: bool, units: Units = 'm'
+          ) -> BodySpec:
     _check_keys(data, _BODY_KEYS if moving else _REF_KEYS, where, {'name', 'mesh'})
     name = data['name']
     if not isinstance(name, str) or not name.isidentifier():
@@ -306,6 +373,14 @@ def _body(data: Any, mesh_dir: Path, where: str, moving: bool) -> BodySpec:
     for key in ('flexion_fraction', 'varus_fraction'):
         if key in data:
             given[key] = _number(data[key], f'{where}.{key}')
+    if data.get('load_n') is not None:
+        given['load_n'] = _number(data['load_n'], f'{where}.load_n')
+        if given['load_n'] <= 0.0:
+            raise ConfigError(f'{where}.load_n={given["load_n"]:g} must be a positive number '
+                              'of newtons')
+    if data.get('load_toward') is not None:
+        given['load_toward'] = _point(data['load_toward'], f'{where}.load_toward',
+                                      UNIT_SCALE[units])
     push_fraction = data.get('push_flexion_fraction')
     return replace(spec, **given,
                    locked_slide=(None if data.get('locked_slide') is None else
@@ -408,7 +483,7 @@ def _parse(data: Any, path: Path, mesh_dir: Path | None) -> KneeConfig:
     bodies_data = data['bodies']
     if not isinstance(bodies_data, list) or not bodies_data:
         raise ConfigError('bodies must be a non-empty list of moving bodies')
-    bodies = tuple(_body(b, mesh_dir, f'bodies[{i}]', moving=True)
+    bodies = tuple(_body(b, mesh_dir, f'bodies[{i}]', moving=True, units=units)
                    for i, b in enumerate(bodies_data))
     names = [reference.name] + [b.name for b in bodies]
     if len(set(names)) != len(names):
@@ -417,6 +492,29 @@ def _parse(data: Any, path: Path, mesh_dir: Path | None) -> KneeConfig:
     _check_keys(grid, _GRID_KEYS, 'grid', _GRID_KEYS)
     settle = _settle_params(data.get('settle') or {})
     name = str(data.get('name', path.stem))
-    return KneeConfig(name, units, reference, bodies, axes,
-                      grid_values(grid['flexion_deg'], 'grid.flexion_deg'),
-                      grid_values(grid['varus_deg'], 'grid.varus_deg'), settle, data)
+    ligaments = _ligaments(data.get('ligaments'), mesh_dir, names, units)
+    config = KneeConfig(name, units, reference, bodies, axes,
+                        grid_values(grid['flexion_deg'], 'grid.flexion_deg'),
+                        grid_values(grid['varus_deg'], 'grid.varus_deg'), settle, data,
+                        ligaments)
+    for i, body in enumerate(bodies):
+        acting = [] if ligaments is None else \
+            ligaments.acting_on(body.name, config.placed_before(body))
+        if acting and body.load_n is None:
+            raise ConfigError(f'bodies[{i}].load_n: {len(acting)} ligament fibres act on '
+                              f'{body.name!r}; give the load on its push in newtons')
+    return config
+
+
+def _ligaments(value: Any, mesh_dir: Path, bodies: list[str], units: str
+               ) -> LigamentSet | None:
+    """`ligaments:` a file in the shared format (relative to mesh_dir, like the meshes) or
+    a list of fibres inline."""
+    if value is None:
+        return None
+    if isinstance(value, list):
+        return parse_ligaments(value, 'ligaments', bodies, units)
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f'ligaments must be a file name or a list of fibres, got {value!r}')
+    path = Path(value) if Path(value).is_absolute() else mesh_dir / value
+    return load_ligaments(path, bodies)

@@ -3,9 +3,14 @@
 `sample_cells` picks the cells a table claims at rest (all, or N spread over the grid: every
 body's four corners, then a seeded shuffle of the rest); `verify_table` judges them on an
 executor: each worker rebuilds the cell's problem from the table's own record of its config
-(push, locked slide, envelope and its anchor) and climbs the travel from the stored pose
-with the referee (`kneeseat_core.referee.judge`, which shares no code with the settle).
-A cell that did not converge claims nothing and is not judged.
+(push, locked slide, envelope and its anchor, the load and the ligaments placed by the
+table's own poses of the other bodies) and climbs the objective from the stored pose with
+the referee (`kneeseat_core.referee.judge`, which shares no code with the settle), then
+measures how far the pose can move while the objective stays within one resolution of
+the best it found (how well the rest is determined). A cell that did not converge claims
+nothing and is not judged. The search envelope bounds the referee only where it holds
+(a body's own `envelope`): a claimed rest from which an ascent leaves the envelope is not
+at rest.
 """
 from __future__ import annotations
 
@@ -19,14 +24,16 @@ import numpy as np
 import trimesh
 
 from kneeseat_core.errors import NoContactError
-from kneeseat_core.geometry import carried, matrix_from_quat, pose_from, TOL
-from kneeseat_core.knee import BodySpec, config_from_metadata, KneeConfig, neutral_pose
+from kneeseat_core.geometry import carried, matrix_from_quat, pose_from
+from kneeseat_core.knee import (BodySpec, config_from_metadata, KneeConfig,
+                                ligaments_from_metadata, neutral_pose)
+from kneeseat_core.ligaments import LigamentSet
 from kneeseat_core.meshes import load_mesh, Units
 from kneeseat_core.params import SettleParams
 from kneeseat_core.status import AT_REST, STATUS_NAMES
 from kneeseat_core.table import PoseTable, read_table
 from kneeseat_core.typed import Pose
-from .judge import Envelope, Referee
+from .judge import Envelope, Load, Referee
 
 __all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'mesh_file']
 
@@ -43,6 +50,8 @@ class CellVerdict:
     slide_m: float
     spin_deg: float
     queries: int
+    extent_m: float | None = None       # how far the rest can slide within one resolution
+    extent_deg: float | None = None     # ... and spin (None: not measured)
 
     @property
     def converged(self) -> bool:
@@ -60,7 +69,10 @@ class CellVerdict:
                      f'and turning {self.spin_deg:.2f} deg')
         verdict = ('at rest' if self.gain_m <= resolution_m else 'NOT AT REST') \
             if self.converged else 'not claimed at rest'
-        return f'{where} ({state}): {found}: {verdict}'
+        extent = '' if self.extent_m is None else \
+            (f'; within a resolution of its best it moves {self.extent_m * 1e3:.2f} mm and '
+             f'{self.extent_deg:.2f} deg')
+        return f'{where} ({state}): {found}: {verdict}{extent}'
 
     def as_json(self) -> dict[str, Any]:
         """JSON-ready dict (gain_m null when the referee climbs off the fixed body)."""
@@ -68,14 +80,18 @@ class CellVerdict:
                 'varus_deg': self.varus_deg, 'status': STATUS_NAMES.get(self.status),
                 'converged': self.converged,
                 'gain_m': None if math.isinf(self.gain_m) else self.gain_m,
-                'slide_m': self.slide_m, 'spin_deg': self.spin_deg, 'queries': self.queries}
+                'slide_m': self.slide_m, 'spin_deg': self.spin_deg, 'queries': self.queries,
+                'extent_m': self.extent_m, 'extent_deg': self.extent_deg}
 
 
 # ---- a table's cells ------------------------------------------------------------------
-def _varus_free(meta: dict[str, Any], body: int) -> bool:
-    specs = meta.get('config', {}).get('resolved', {}).get('bodies', [])
-    return (body < len(specs)
-            and abs(float(specs[body].get('varus_fraction', 1.0))) < TOL.fraction)
+def _copied_across_varus(table: PoseTable, body: int) -> bool:
+    """The body's cells are the same at every varus value (the sweep settled it once per
+    flexion value and copied it)."""
+    v0 = int(np.argmin(np.abs(table.varus_rad)))
+    centre = table.position_m[body, :, v0:v0 + 1]
+    return bool(np.array_equal(np.broadcast_to(centre, table.position_m[body].shape),
+                               table.position_m[body]))
 
 
 def sample_cells(table: PoseTable, count: int | None, seed: int = 20261201
@@ -92,7 +108,7 @@ def sample_cells(table: PoseTable, count: int | None, seed: int = 20261201
     claimed = np.isin(table.status, AT_REST)
     per_body = []
     for b in range(nb):
-        columns = [v0] if _varus_free(table.metadata, b) else list(range(nv))
+        columns = [v0] if _copied_across_varus(table, b) else list(range(nv))
         cells = [(b, i, j) for i in range(nf) for j in columns if claimed[b, i, j]]
         if count is None:
             per_body.append(cells)
@@ -120,6 +136,7 @@ class _CellJob:
     table: str
     mesh_dir: str | None
     cells: tuple[tuple[int, int, int], ...]
+    extent: bool = True
 
 
 _WORKER_STATE: dict[str, Any] = {}
@@ -133,6 +150,34 @@ def mesh_file(path: Path, mesh_dir: str | None) -> str:
 def _meshes(spec: BodySpec, units: Units, mesh_dir: str | None) -> list[trimesh.Trimesh]:
     """A body's collision meshes, loaded quietly (the parent validated them once)."""
     return [load_mesh(mesh_file(p, mesh_dir), units, quiet=True) for p in spec.meshes]
+
+
+def _cell_load(config: KneeConfig, ligaments: LigamentSet | None, table: PoseTable,
+               params: SettleParams, cell: tuple[int, int, int]) -> Load | None:
+    """The load and the fibres pulling on the body at a cell, every point not on the body
+    placed by the table's own pose of its body there; None without ligaments."""
+    b, i, j = cell
+    spec = config.bodies[b]
+    if ligaments is None or params.load_n is None:
+        return None
+    fibres = ligaments.acting_on(spec.name, config.placed_before(spec))
+    if not fibres:
+        return None
+    index = {body.name: k for k, body in enumerate(config.bodies)}
+    paths = []
+    for fibre in fibres:
+        points = np.array(fibre.points, dtype=np.float64)
+        on_body = np.array([name == spec.name for name in fibre.bodies])
+        for n, name in enumerate(fibre.bodies):
+            if name != spec.name and name != config.reference.name:
+                k = index[name]
+                rot = matrix_from_quat(table.orientation_xyzw[k, i, j])
+                points[n] = rot @ points[n] + table.position_m[k, i, j]
+        paths.append((points, on_body))
+    toward = None if params.load_toward is None else np.asarray(params.load_toward, dtype=float)
+    return Load(float(params.load_n), toward, tuple(paths),
+                np.array([f.slack_m for f in fibres]), np.array([f.stiffness_n for f in fibres]),
+                np.array([f.transition for f in fibres]))
 
 
 def _cell_problem(config: KneeConfig, meta: dict[str, Any], body: int, flexion: float,
@@ -159,6 +204,8 @@ def _judge_cells(job: _CellJob) -> list[CellVerdict]:
         _WORKER_STATE.clear()
         _WORKER_STATE.update(
             key=key, table=loaded, config=built,
+            ligaments=ligaments_from_metadata(
+                loaded.metadata, None if job.mesh_dir is None else Path(job.mesh_dir)),
             fixed=_meshes(built.reference, built.units, job.mesh_dir),
             moving=[_meshes(b, built.units, job.mesh_dir) for b in built.bodies])
     table: PoseTable = _WORKER_STATE['table']
@@ -172,24 +219,35 @@ def _judge_cells(job: _CellJob) -> list[CellVerdict]:
                          table.position_m[b, i, j])
         referee = Referee(_WORKER_STATE['fixed'], _WORKER_STATE['moving'][b],
                           np.asarray(params.push), params.resolution_m,
-                          None if params.locked_slide is None else np.asarray(params.locked_slide))
+                          None if params.locked_slide is None else np.asarray(params.locked_slide),
+                          load=_cell_load(config, _WORKER_STATE['ligaments'], table, params,
+                                          (b, i, j)))
+        # a search envelope bounds the settle, never the referee; one that holds bounds both
+        envelope = Envelope(anchor, params.max_slide_m, params.max_spin_rad) \
+            if params.envelope_holds else None
+        extent_m = extent_deg = None
         try:
-            verdict = referee.judge(pose, Envelope(anchor, params.max_slide_m,
-                                                   params.max_spin_rad))
+            verdict = referee.judge(pose, envelope)
             gain, slide, spin = verdict.gain_m, verdict.slide_m, math.degrees(verdict.spin_rad)
+            if job.extent and gain <= params.resolution_m:
+                extent = referee.extent(pose, referee.measure(verdict.best_pose)[0], envelope)
+                extent_m, extent_deg = extent.slide_m, math.degrees(extent.spin_rad)
         except NoContactError:          # the stored pose has no contact along the push
             gain, slide, spin = math.inf, 0.0, 0.0
         out.append(CellVerdict(table.bodies[b], math.degrees(flexion), math.degrees(varus),
-                               int(codes[b, i, j]), gain, slide, spin, referee.queries))
+                               int(codes[b, i, j]), gain, slide, spin, referee.queries,
+                               extent_m, extent_deg))
     return out
 
 
 def verify_table(path: Path, cells: Sequence[tuple[int, int, int]], executor: Executor,
-                 mesh_dir: Path | None = None, progress: Any = None) -> Iterator[CellVerdict]:
-    """Judge `cells` of the table at `path` on `executor`; yields verdicts as they finish."""
+                 mesh_dir: Path | None = None, progress: Any = None,
+                 extent: bool = True) -> Iterator[CellVerdict]:
+    """Judge `cells` of the table at `path` on `executor`; yields verdicts as they finish.
+    With `extent`, a cell at rest also says how far it can move within one resolution."""
     chunk = 2
     jobs = [_CellJob(str(path), None if mesh_dir is None else str(mesh_dir),
-                     tuple(cells[k:k + chunk])) for k in range(0, len(cells), chunk)]
+                     tuple(cells[k:k + chunk]), extent) for k in range(0, len(cells), chunk)]
     futures = [executor.submit(_judge_cells, job) for job in jobs]
     for fut in as_completed(futures):
         for verdict in fut.result():

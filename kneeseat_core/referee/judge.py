@@ -17,7 +17,17 @@ is the total gain and the move that produced it.
 
 An envelope (the largest slide across the push and spin about it, measured from an anchor
 pose) bounds the climb when given: states outside it are refused, so a rest on the
-envelope's boundary is judged within the envelope.
+envelope's boundary is judged within the envelope. Give one only where the envelope holds
+(a config's soft-tissue stand-in): a search envelope bounds the settle, never the referee.
+
+With ligaments (`Load`: the load on the push and the fibres acting on the body, with every
+point not on the body already placed), the referee climbs what the settle claims to
+maximise there, with its own arithmetic: the load's work less the fibres' elastic energy
+at the contact pose, per unit load (m): the advance of the body's centroid along the push
+(or, for a load that pulls toward a point, minus the centroid's distance from it) less
+E / F, with E from the Blankevoort force law integrated here. `extent` says how well a rest is
+determined: how far the pose can slide and spin while the objective stays within one
+resolution of its value there.
 """
 from __future__ import annotations
 
@@ -34,7 +44,7 @@ import trimesh
 from kneeseat_core.errors import NoContactError
 from kneeseat_core.typed import Floats, Pose
 
-__all__ = ['Envelope', 'Verdict', 'Referee', 'RefereeTuning', 'REFEREE']
+__all__ = ['Envelope', 'Verdict', 'Referee', 'RefereeTuning', 'REFEREE', 'Load', 'Extent']
 
 # Penalty returned for a lateral state the climb may not take (outside the envelope).
 _REFUSED = 1e9
@@ -81,6 +91,46 @@ class Envelope:
     max_spin_rad: float
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class Load:
+    """The load on the push and the fibres pulling on the moving body (for the referee).
+
+    Each fibre is a path of points; a point either rides on the moving body (its frame) or
+    is fixed in the fixed body's frame (already placed).
+    """
+
+    load_n: float
+    toward: Floats | None                      # (3,) the point the load pulls toward (None:
+    #                                            the load acts along the push)
+    paths: tuple[tuple[Floats, Floats], ...]   # per fibre: (n, 3) points, (n,) on the body
+    slack_m: Floats                            # (f,)
+    stiffness_n: Floats                        # (f,) N per unit strain
+    transition: Floats                         # (f,) transition strain
+
+    def energy(self, pose: Pose) -> float:
+        """Elastic energy (J) with the body at `pose`: Blankevoort's f = k e^2 / (2 e_t)
+        below the transition strain, k (e - e_t / 2) above, integrated over the length."""
+        lengths = np.empty(len(self.paths))
+        for i, (points, on_body) in enumerate(self.paths):
+            placed = np.where(on_body[:, None], points @ pose[:3, :3].T + pose[:3, 3], points)
+            lengths[i] = np.sqrt(np.sum(np.diff(placed, axis=0) ** 2, axis=1)).sum()
+        e = np.maximum(lengths / self.slack_m - 1.0, 0.0)
+        k, et, l0 = self.stiffness_n, self.transition, self.slack_m
+        toe = l0 * k * e ** 3 / (6.0 * et)
+        linear = l0 * k * (e * e / 2.0 - et * e / 2.0 + et * et / 6.0)
+        return float(np.sum(np.where(e < et, toe, linear)))
+
+
+@dataclass(frozen=True, slots=True)
+class Extent:
+    """How well a rest is determined: the farthest the pose moves while the objective stays
+    within one resolution of its value there."""
+
+    slide_m: float             # largest displacement of the centroid across the push
+    spin_rad: float            # largest spin about the push
+    evaluations: int
+
+
 @dataclass(frozen=True, slots=True)
 class Verdict:
     """What the referee found from one pose."""
@@ -111,10 +161,12 @@ def _bvh(meshes: Sequence[trimesh.Trimesh]) -> fcl.BVHModel:
 
 @dataclass(slots=True)
 class _Best:
-    """The highest travel a climb has found so far, and the lateral state that gave it."""
+    """The highest objective a climb has found so far, the lateral state that gave it and
+    the travel there."""
 
     value: float
     state: Floats
+    travel: float
 
 
 class Referee:
@@ -127,12 +179,15 @@ class Referee:
         resolution_m: the resolution the verdict is judged at; travel is measured to a
             tenth of it.
         locked_slide: (3,) a slide direction the body may not take, or None.
+        load: the load and the fibres on the body (the objective is then the load's work
+            less their energy, per unit load), or None for the travel alone.
     """
 
     def __init__(self, fixed: Sequence[trimesh.Trimesh], moving: Sequence[trimesh.Trimesh],
                  push: Floats, resolution_m: float, locked_slide: Floats | None = None,
-                 tuning: RefereeTuning = REFEREE) -> None:
+                 tuning: RefereeTuning = REFEREE, load: Load | None = None) -> None:
         self.tuning = tuning
+        self.load = load
         self._fixed = fcl.CollisionObject(_bvh(fixed), fcl.Transform())
         self._moving = fcl.CollisionObject(_bvh(moving), fcl.Transform())
         self._request = fcl.CollisionRequest()
@@ -222,6 +277,18 @@ class Referee:
                 free = mid
         return 0.5 * (free + hit)
 
+    def measure(self, pose: Pose) -> tuple[float, float]:
+        """The objective at the lateral pose `pose` and its travel (m): the travel itself
+        without a load; with one, l . c - E / F at the contact pose. inf: no contact."""
+        travel = self.travel(pose)
+        if self.load is None or not math.isfinite(travel):
+            return travel, travel
+        contact = self._along(pose, travel)
+        centre = contact[:3, :3] @ self._centroid + contact[:3, 3]
+        work = float(self.push @ centre) if self.load.toward is None \
+            else -float(np.linalg.norm(self.load.toward - centre))
+        return work - self.load.energy(contact) / self.load.load_n, travel
+
     # ---- the climb ----------------------------------------------------------------
     def judge(self, pose: Pose, envelope: Envelope | None = None,
               max_evaluations: int | None = None) -> Verdict:
@@ -241,11 +308,11 @@ class Referee:
         arm = max(self._arm(pose), self.resolution_m)
         queries_before = self.queries
         res = self.resolution_m
-        base_travel = self.travel(pose)
+        base_value, base_travel = self.measure(pose)
         if not math.isfinite(base_travel):
             raise NoContactError(self._limit)      # nothing to judge
         evaluations = 1
-        best = _Best(base_travel, np.zeros(3))
+        best = _Best(base_value, np.zeros(3), base_travel)
 
         def value(z: Floats) -> float:
             nonlocal evaluations
@@ -255,12 +322,12 @@ class Referee:
             if envelope is not None and not self._inside(cand, envelope):
                 return _REFUSED
             evaluations += 1
-            t = self.travel(cand)
+            v, t = self.measure(cand)
             if t == math.inf:
-                t = _OFF
-            if t > best.value:
-                best.value, best.state = t, state
-            return -t
+                v = _OFF
+            if v > best.value:
+                best.value, best.state, best.travel = v, state, t
+            return -v
 
         start = np.zeros(len(self._dims))
         while evaluations < max_evaluations:
@@ -275,13 +342,62 @@ class Referee:
             start = best.state[self._dims] / res
         state = best.state
         moved = self.lateral(pose, state, arm)
-        gain = best.value - base_travel
+        gain = best.value - base_value
         if best.value >= _OFF:
             gain = math.inf
         slide = float(np.hypot(state[0] * self._free[0], state[1]))
         return Verdict(gain, slide, float(state[2] / arm), evaluations,
                        self.queries - queries_before,
-                       self._along(moved, best.value if math.isfinite(gain) else 0.0))
+                       self._along(moved, best.travel if math.isfinite(gain) else 0.0))
+
+    def extent(self, pose: Pose, top: float | None = None, envelope: Envelope | None = None,
+               cap_m: float = 0.02, cap_rad: float = math.radians(45.0)) -> Extent:
+        """How far `pose` can move (slides, spins and the pairs of them, each way) while the
+        objective stays within one resolution of `top` (default: its value at `pose`): along
+        each direction the move doubles from one resolution while it stays within, then
+        the edge is bisected to a tenth; up to `cap_m` of slide and `cap_rad` of spin."""
+        pose = np.asarray(pose, dtype=np.float64)
+        arm = max(self._arm(pose), self.resolution_m)
+        res = self.resolution_m
+        here = self.measure(pose)[0]
+        floor = (here if top is None else max(top, here)) - res
+        evaluations = 0
+
+        def within(state: Floats) -> bool:
+            nonlocal evaluations
+            cand = self.lateral(pose, state, arm)
+            if envelope is not None and not self._inside(cand, envelope):
+                return False
+            evaluations += 1
+            value, travel = self.measure(cand)
+            return math.isfinite(travel) and value >= floor
+
+        axes = [np.eye(3)[k] for k in self._dims]
+        directions = [s * a for a in axes for s in (1.0, -1.0)]
+        for i, a in enumerate(axes):
+            for b in axes[i + 1:]:
+                directions += [(sa * a + sb * b) / math.sqrt(2.0)
+                               for sa in (1.0, -1.0) for sb in (1.0, -1.0)]
+        slide = spin = 0.0
+        for d in directions:
+            reach = float(min(cap_m / max(math.hypot(d[0], d[1]), 1e-12),
+                              cap_rad * arm / max(abs(d[2]), 1e-12)))
+            inside, step = 0.0, res
+            while step < reach and within(step * d):
+                inside, step = step, 2.0 * step
+            if step >= reach and within(reach * d):
+                inside = reach
+            else:
+                out = min(step, reach)
+                while out - inside > 0.1 * max(inside, res):
+                    mid = 0.5 * (inside + out)
+                    if within(mid * d):
+                        inside = mid
+                    else:
+                        out = mid
+            slide = max(slide, inside * math.hypot(d[0] * self._free[0], d[1]))
+            spin = max(spin, inside * abs(d[2]) / arm)
+        return Extent(slide, spin, evaluations)
 
     def _inside(self, pose: Pose, envelope: Envelope) -> bool:
         anchor = envelope.anchor

@@ -51,7 +51,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kneeseat_core.errors import NoContactError
+from kneeseat_core.errors import NoContactError, SettleError
+from kneeseat_core.ligaments import Tissue
 from kneeseat_core.meshes import CollisionPair, RigidBody
 from kneeseat_core.params import Method, SettleParams
 from kneeseat_core.typed import Pose
@@ -64,7 +65,7 @@ __all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'settle']
 
 
 def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParams,
-           anchor: Pose | None = None) -> SettleResult:
+           anchor: Pose | None = None, tissue: Tissue | None = None) -> SettleResult:
     """Push `moving` along `params.push` until it rests on `fixed`.
 
     Args:
@@ -74,13 +75,20 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
             out along -Δ first (reported in `backed_out_m`).
         params: the settle parameters.
         anchor: (4, 4) pose the search envelope is measured from (default: `start`).
+        tissue: the ligaments acting on `moving` (`LigamentSet.tissue`), with the load on
+            the push in `params.load_n`: the default method then climbs the load's work
+            less their energy. The patent's method has no soft tissue and ignores it.
     Returns:
         The settle result; `converged` says whether the method's stop rule was met.
     Raises:
         NoContactError: no contact along Δ within the travel limit.
-        SettleError: invalid parameters, or a start buried too deep to back out.
+        SettleError: invalid parameters, a tissue without a load, or a start buried too
+            deep to back out.
     """
     params.check()
+    if tissue is not None and params.load_n is None:
+        raise SettleError('ligaments act on the moving body but no load is given; give the '
+                          'load on the push in newtons (load_n)')
     start = np.asarray(start, dtype=np.float64)
     search = Search(CollisionPair(fixed, moving), start, params,
                     start if anchor is None else np.asarray(anchor, dtype=np.float64))
@@ -93,4 +101,4 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
         raise NoContactError(limit)
     if params.method == 'patent':
         return run_patent(search, bracket)
-    return run_climb(search, bracket)
+    return run_climb(search, bracket, tissue)

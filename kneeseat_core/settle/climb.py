@@ -37,9 +37,11 @@ import time
 
 import numpy as np
 
+from kneeseat_core.ligaments import Tissue
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Floats, Pose
 from .hull import min_norm_point
+from .objective import Objective, objective_for
 from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
 from .tuning import SettleTuning, TUNING
 
@@ -67,6 +69,7 @@ class _Climb:
 
     search: Search
     tuning: SettleTuning
+    objective: Objective       # what the climb maximises (the travel, or work less energy)
     arm: float                 # m of arc per radian of spin (the farthest vertex)
     tol: float                 # exact-contact tolerance along Δ (m)
     flat: float                # slope at or below which the contacts count as balanced
@@ -82,15 +85,17 @@ class _Climb:
     trusted: bool = False      # the last measured move kept its promise (see `move`)
 
     @classmethod
-    def start(cls, search: Search, bracket: Bracket, tuning: SettleTuning) -> _Climb:
+    def start(cls, search: Search, bracket: Bracket, tuning: SettleTuning,
+              tissue: Tissue | None) -> _Climb:
         """The climb from the first exact contact `bracket`, its scales derived from the
         settle's parameters (D4: the rotation resolution is an arc at the farthest vertex
-        unless given)."""
+        unless given), its objective from the tissue acting on the body."""
         p = search.params
         arm = max(search.pair.moving.reach, p.step_m)
         rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
             else p.resolution_m / arm
-        return cls(search=search, tuning=tuning, arm=arm,
+        return cls(search=search, tuning=tuning, objective=objective_for(search, tissue, arm),
+                   arm=arm,
                    tol=tuning.contact_tol_res * p.resolution_m,
                    # a slope that cannot gain one resolution across the whole envelope
                    flat=p.resolution_m / max(p.max_slide_m, p.max_spin_rad * arm),
@@ -131,8 +136,9 @@ class _Climb:
 
     # ---- first-order model ---------------------------------------------------------
     def gradients(self, contacts: Contacts, pose: Pose | None = None) -> Floats:
-        """Depth gradient (k, 3) of each facing patch w.r.t. (slide e1, slide e2, arc), for
-        the body at `pose` (default: the current pose)."""
+        """The objective's gradient (k, 3) at each facing patch w.r.t. (slide e1, slide e2,
+        arc), for the body at `pose` (default: the current pose): from the patch's depth
+        gradient, the travel's."""
         s = self.search
         pose = self.pose if pose is None else pose
         facing = s.facing(contacts, s.push)
@@ -141,8 +147,9 @@ class _Climb:
         n, pts = facing.normals, facing.points
         lever = np.cross(s.push, pts - s.centre(pose)) / self.arm
         down = -(n @ s.push)
-        return np.stack([n @ s.e1, n @ s.e2, np.einsum('ij,ij->i', n, lever)], 1) \
+        depth = np.stack([n @ s.e1, n @ s.e2, np.einsum('ij,ij->i', n, lever)], 1) \
             * s.free / down[:, None]
+        return self.objective.gradients(depth, pose)
 
     def _mask(self, direction: Floats) -> Floats:
         """Where the envelope holds: `direction` without the parts that leave it."""
@@ -237,11 +244,21 @@ class _Climb:
         measured = promised >= t.measurable * floor_tol
         if not (measured or self.trusted):
             return _Outcome(t.untrusted_cut * length)
-        kept = t.promise * promised + width if measured else -width
-        lifted = translated(target, kept * s.push)
-        if s.collides(lifted):
-            return self._blocked(direction, slope, length, measured, lifted, target)
-        bracket = s.touch(lifted, max(promised - kept, 0.0), tau, free_at_start=True)
+        base_gap, gain = (width, t.promise * promised) if measured else (-width, 0.0)
+        kept = self.objective.lift_to(target, self.pose, base_gap, gain)
+        if abs(kept) <= self.objective.lift_limit:
+            lifted = translated(target, kept * s.push)
+            if s.collides(lifted):
+                return self._blocked(direction, slope, length, measured, lifted, target)
+            bracket = s.touch(lifted, max(promised - kept, 0.0), tau, free_at_start=True)
+        else:
+            # the load barely presses along the push: a lift that deep proves nothing (an
+            # open sheet has no inside), so the contact itself is found and weighed
+            bracket = s.touch(target, max(promised, 0.0), tau)
+            if bracket is not None and self.objective.value(bracket.free) < \
+                    self.objective.target(self.pose, base_gap, gain):
+                return self._blocked(direction, slope, length, measured, bracket.touching,
+                                     target)
         if bracket is None:
             return _Outcome(self.step, (Status.LOST, LOST_CONTACT))
         floor = self._floor_at(bracket.free)
@@ -303,12 +320,19 @@ class _Climb:
         return hi - lo
 
     def _arrive(self, bracket: Bracket, floor: Contacts) -> End | None:
-        """Take the pose of `bracket`; outside the search envelope the climb ends."""
+        """Take the pose of `bracket`; outside the search envelope, or pulled off the fixed
+        body by its ligaments, the climb ends."""
         s = self.search
         self.pose, self.touching, self.floor = bracket.free, bracket.touching, floor
         self.learned = Contacts.empty()
         outside = None if s.params.envelope_holds else s.beyond_envelope(self.pose)
-        return (Status.ENVELOPE, outside) if outside else None
+        return (Status.ENVELOPE, outside) if outside else self.pulled()
+
+    def pulled(self) -> End | None:
+        """The end when the body's ligaments pull it off the fixed body against its load."""
+        if self.objective.pressing(self.pose) > 0.0:
+            return None
+        return (Status.PULLED, self.objective.pulled_off(self.pose))
 
     def _crest(self, slope: float, new_slope: float) -> float:
         """Share of the last move at which the slope would reach zero (secant), at least
@@ -344,7 +368,7 @@ class _Climb:
                             self._room(d, length) < length:
                         continue
                     cand = s.lateral(self.pose, length * d, self.arm)
-                    if s.collides(translated(cand, lift * s.push)):
+                    if not self._gains(cand, lift):
                         continue
                     return self._follow(d, length, lift)
         finally:
@@ -352,19 +376,34 @@ class _Climb:
             self.proof_s += time.perf_counter() - started
         return None
 
+    def _gains(self, cand: Pose, lift: float) -> bool:
+        """Whether the lateral pose `cand` is at least `lift` above the current pose in the
+        objective: one query at the lift that proves it, or, where that lift is too deep
+        to prove anything, the contact itself found and weighed."""
+        s, objective = self.search, self.objective
+        h = objective.lift_to(cand, self.pose, 0.0, lift)
+        if abs(h) <= objective.lift_limit:
+            return not s.collides(translated(cand, h * s.push))
+        bracket = s.touch(cand, 0.0, self.tol)
+        return bracket is not None and \
+            objective.value(bracket.free) >= objective.target(self.pose, 0.0, lift)
+
     def _follow(self, direction: Floats, length: float, lift: float) -> _Outcome:
         """A probe gained: follow its direction outward while it keeps gaining (a pattern
         move), and continue from the best pose found."""
-        s, t = self.search, self.tuning
+        s, t, objective = self.search, self.tuning, self.objective
         best: Bracket | None = None
         while True:
             target = s.lateral(self.pose, length * direction, self.arm)
-            bracket = s.touch(translated(target, lift * s.push), 0.0, self.tol)
+            h = objective.lift_to(target, self.pose, 0.0, lift)
+            bracket = s.touch(translated(target, h * s.push) if abs(h) <= objective.lift_limit
+                              else target, 0.0, self.tol)
             if bracket is None:
                 if best is None:
                     return _Outcome(self.step, (Status.LOST, LOST_CONTACT))
                 break
-            if best is not None and s.depth(bracket.free) <= s.depth(best.free) + self.tol:
+            if best is not None and \
+                    objective.value(bracket.free) <= objective.value(best.free) + self.tol:
                 break
             best = bracket
             grown = self._room(direction, t.follow_grow * length)
@@ -375,11 +414,14 @@ class _Climb:
         return _Outcome(max(self.step, t.resume_moves * self.finest), end)
 
 
-def run_climb(search: Search, bracket: Bracket, tuning: SettleTuning = TUNING) -> SettleResult:
-    """Climb from the first exact contact `bracket` to a rest pose (module docstring)."""
+def run_climb(search: Search, bracket: Bracket, tissue: Tissue | None = None,
+              tuning: SettleTuning = TUNING) -> SettleResult:
+    """Climb from the first exact contact `bracket` to a rest pose (module docstring), of
+    the travel, or of the load's work less the energy of the `tissue` acting on the body
+    (`kneeseat_core.settle.objective`)."""
     p = search.params
-    climb = _Climb.start(search, bracket, tuning)
-    end: End | None = None
+    climb = _Climb.start(search, bracket, tuning, tissue)
+    end: End | None = climb.pulled()
     while end is None and search.iterations < p.max_iterations:
         search.iterations += 1
         chosen = climb.choose() if climb.has_step else None
@@ -401,8 +443,9 @@ def _at_rest(search: Search, climb: _Climb) -> End:
     the boundary of an envelope that holds."""
     bound = (search.on_boundary(climb.pose, climb.finest, climb.arm)
              if search.params.envelope_holds else None)
+    gain = climb.objective.gain
     if bound:
         return (Status.CONSTRAINED, f'rest on the envelope boundary ({bound}): nothing inside '
-                'the envelope gains more than the resolution along the push')
+                f'the envelope gains more than the resolution {gain}')
     return (Status.REST, 'rest: no slide, spin about the push or combination, short or '
-            'long, gains more than the resolution along the push')
+            f'long, gains more than the resolution {gain}')

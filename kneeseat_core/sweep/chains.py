@@ -22,13 +22,14 @@ import numpy as np
 
 from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import carried, pose_from
+from kneeseat_core.ligaments import LigamentSet, Tissue
 from kneeseat_core.params import SettleParams
 from kneeseat_core.settle import settle
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .scene import scene_bodies, SceneSpec
 
-__all__ = ['ChainJob', 'ChainResult', 'run_chain', 'warm_start', 'cold_start']
+__all__ = ['ChainJob', 'SoftTissue', 'ChainResult', 'run_chain', 'warm_start', 'cold_start']
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -44,6 +45,30 @@ class ChainJob:
     start_attitude: Floats                  # (3, 3) attitude `start` was settled at
     anchor: Pose                            # (4, 4) envelope anchor, carried to each cell
     anchor_attitude: Floats                 # (3, 3) attitude the anchor belongs to
+    soft_tissue: SoftTissue | None = None   # the ligaments acting on the body, if any
+
+    def tissue(self, i: int) -> Tissue | None:
+        """The ligaments acting on the body at the chain's i-th cell."""
+        return None if self.soft_tissue is None else self.soft_tissue.at(i)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SoftTissue:
+    """What a chain needs to place the ligaments of its body at each of its cells: the set,
+    the body's name, and where the bodies its fibres pull from rest at each cell (the
+    reference at identity, the other bodies as they were settled there)."""
+
+    ligaments: LigamentSet
+    body: str
+    reference: str
+    placed: tuple[str, ...]                 # the settled bodies its fibres reach
+    placed_poses: Floats                    # (n, len(placed), 4, 4) their poses per cell
+
+    def at(self, i: int) -> Tissue | None:
+        """The tissue at the chain's i-th cell."""
+        poses = {self.reference: np.eye(4)}
+        poses.update(zip(self.placed, self.placed_poses[i]))
+        return self.ligaments.tissue(self.body, poses)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -93,10 +118,12 @@ def run_chain(job: ChainJob) -> ChainResult:
         start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
                            params.step_m)
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
+        tissue = job.tissue(i)
         try:
-            result = settle(fixed, moving, start, params, anchor)
+            result = settle(fixed, moving, start, params, anchor, tissue)
             if not result.converged:       # the chain drifted: try the cold start once
-                retry = settle(fixed, moving, cold_start(attitude, params), params, anchor)
+                retry = settle(fixed, moving, cold_start(attitude, params), params, anchor,
+                               tissue)
                 checks += result.collision_checks
                 result = retry if retry.converged else result
         except (NoContactError, SettleError) as err:

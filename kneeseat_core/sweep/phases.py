@@ -9,7 +9,13 @@ Order (the patent's warm start, made parallel):
 Each phase runs its chains (`kneeseat_core.sweep.chains`) in parallel (across bodies, then
 across flexion values and sides) on any `concurrent.futures.Executor`
 (`kneeseat_core.sweep.executors`). A body whose attitude ignores varus (`varus_fraction:
-0`, e.g. a patella) is settled on its spine only and copied across varus.
+0`, e.g. a patella) is settled on its spine only and copied across varus, unless its
+ligaments pull from a body that feels varus.
+
+A body whose ligaments pull from another moving body (a patella's tendon from the tibia)
+is swept after that body, in a later *wave*: at each cell its fibres are attached to the
+other body as it was settled there. That neglects the pull of those fibres on the body
+settled first (the tendon's on the tibia); docs/design.md says what it changes.
 
 Why ribs along varus rather than columns along flexion: where a body rests on one contact
 only (a tibia tilted by a commanded varus bears on one condyle), its spin about the push
@@ -38,7 +44,7 @@ from kneeseat_core.knee import KneeConfig, neutral_pose
 from kneeseat_core.meshes import check_mesh_files
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
-from .chains import ChainJob, ChainResult, cold_start, run_chain
+from .chains import ChainJob, ChainResult, cold_start, run_chain, SoftTissue
 from .scene import SceneSpec
 
 __all__ = ['SweepResult', 'sweep']
@@ -83,11 +89,12 @@ def sweep(config: KneeConfig, executor: Executor,
     """
     started = time.perf_counter()
     run = _Sweep(config, progress)
-    run.collect([executor.submit(run_chain, j) for j in run.centre_jobs()])
-    run.anchor_at_centres()
-    run.collect([executor.submit(run_chain, j) for j in run.spine_jobs()])
-    run.collect([executor.submit(run_chain, j) for j in run.rib_jobs()])
-    run.copy_across_varus()
+    for wave in run.waves():
+        run.collect([executor.submit(run_chain, j) for j in run.centre_jobs(wave)])
+        run.anchor_at_centres(wave)
+        run.collect([executor.submit(run_chain, j) for j in run.spine_jobs(wave)])
+        run.collect([executor.submit(run_chain, j) for j in run.rib_jobs(wave)])
+        run.copy_across_varus(wave)
     return run.result(time.perf_counter() - started)
 
 
@@ -115,7 +122,22 @@ class _Sweep:
         self.centre_attitudes = [config.attitude(spec, flex[self.f0], var[self.v0])
                                  for spec in config.bodies]
         self.anchors = np.array([neutral_pose(a0) for a0 in self.centre_attitudes])
-        self.varus_free = [abs(b.varus_fraction) < TOL.fraction for b in config.bodies]
+        self.depends = [config.depends_on(b) for b in config.bodies]
+        # settled once per flexion value and copied across varus: a body that ignores varus
+        # and whose ligaments pull from no body that feels it
+        self.varus_free: list[bool] = []
+        for b, spec in enumerate(config.bodies):
+            self.varus_free.append(abs(spec.varus_fraction) < TOL.fraction
+                                   and all(self.varus_free[d] for d in self.depends[b]))
+
+    def waves(self) -> list[list[int]]:
+        """The bodies in waves: each after the bodies its ligaments pull from (the config
+        lists a body after those, `KneeConfig.placed_before`)."""
+        wave_of: list[int] = []
+        for deps in self.depends:
+            wave_of.append(1 + max((wave_of[d] for d in deps), default=-1))
+        return [[b for b, w in enumerate(wave_of) if w == k]
+                for k in range(max(wave_of) + 1)]
 
     def job(self, body: int, cells: Sequence[tuple[int, int]], start: Pose,
             start_attitude: Floats) -> ChainJob:
@@ -125,7 +147,23 @@ class _Sweep:
         return ChainJob(self.scene, body, tuple(cells),
                         np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
-                        start, start_attitude, self.anchors[body], self.centre_attitudes[body])
+                        start, start_attitude, self.anchors[body], self.centre_attitudes[body],
+                        self.soft_tissue(body, cells))
+
+    def soft_tissue(self, body: int, cells: Sequence[tuple[int, int]]) -> SoftTissue | None:
+        """The ligaments acting on `body` along a chain, each cell's other bodies where they
+        were settled there; None without ligaments (or with the patent's method, which has
+        no soft tissue)."""
+        config, spec = self.config, self.config.bodies[body]
+        ligaments = config.ligaments
+        if ligaments is None or config.settle.method == 'patent' or \
+                not ligaments.acting_on(spec.name, config.placed_before(spec)):
+            return None
+        deps = self.depends[body]
+        placed = np.array([[self.poses[d, f, v] for d in deps] for f, v in cells]) \
+            if deps else np.zeros((len(cells), 0, 4, 4))
+        return SoftTissue(ligaments, spec.name, config.reference.name,
+                          tuple(config.bodies[d].name for d in deps), placed)
 
     def collect(self, futures: Iterable[Future[ChainResult]]) -> None:
         """Put every finished chain's cells in place, as they finish."""
@@ -147,39 +185,41 @@ class _Sweep:
             if self.progress:
                 self.progress(len(res.cells))
 
-    def centre_jobs(self) -> list[ChainJob]:
+    def centre_jobs(self, wave: list[int]) -> list[ChainJob]:
         """1. Each body's centre cell, from its cold start."""
         config, f0, v0 = self.config, self.f0, self.v0
         jobs = []
-        for b, spec in enumerate(config.bodies):
+        for b in wave:
+            spec = config.bodies[b]
             a0 = self.centre_attitudes[b]
             params = config.params(spec, config.flexion_rad[f0], config.varus_rad[v0])
             jobs.append(self.job(b, [(f0, v0)], cold_start(a0, params), a0))
         return jobs
 
-    def anchor_at_centres(self) -> None:
+    def anchor_at_centres(self, wave: list[int]) -> None:
         """Every other cell's envelope is measured from the centre rest, carried."""
-        for b in range(len(self.config.bodies)):
+        for b in wave:
             if self.converged[b, self.f0, self.v0]:
                 self.anchors[b] = self.poses[b, self.f0, self.v0]
 
-    def spine_jobs(self) -> list[ChainJob]:
+    def spine_jobs(self, wave: list[int]) -> list[ChainJob]:
         """2. Spines: varus v0, flexion outward from f0, from the centre rest."""
         config, f0, v0 = self.config, self.f0, self.v0
         jobs = []
-        for b in range(len(config.bodies)):
+        for b in wave:
             for side in _outward(len(config.flexion_rad), f0):
                 if side:
                     jobs.append(self.job(b, [(f, v0) for f in side], self.poses[b, f0, v0],
                                          self.centre_attitudes[b]))
         return jobs
 
-    def rib_jobs(self) -> list[ChainJob]:
+    def rib_jobs(self, wave: list[int]) -> list[ChainJob]:
         """3. Ribs: every flexion value of a body that feels varus, varus outward from the
         spine cell."""
         config, v0 = self.config, self.v0
         jobs = []
-        for b, spec in enumerate(config.bodies):
+        for b in wave:
+            spec = config.bodies[b]
             if self.varus_free[b]:
                 continue
             for f in range(len(config.flexion_rad)):
@@ -190,10 +230,10 @@ class _Sweep:
                                                              config.varus_rad[v0])))
         return jobs
 
-    def copy_across_varus(self) -> None:
+    def copy_across_varus(self, wave: list[int]) -> None:
         """A body that ignores varus: its spine, copied to every varus value."""
         nf, nv, v0 = len(self.config.flexion_rad), len(self.config.varus_rad), self.v0
-        for b in range(len(self.config.bodies)):
+        for b in wave:
             if self.varus_free[b]:
                 for cells in (self.poses, self.converged, self.iterations, self.status,
                               self.backed):

@@ -1,0 +1,234 @@
+"""What the default method climbs: the travel, or the load's work less the soft tissue's energy.
+
+Without soft tissue (`Travel`) rest is a local maximum of the travel s along the push Δ over
+the lateral state (slides across Δ, spin about it): the patent's own measure, unchanged bit
+for bit. With ligaments acting on the body (`Work`, a load F on the push and a `Tissue`),
+rest is a local maximum of the load's work less the elastic energy E of the ligaments at
+the contact pose, per unit load:
+
+    W / F = l . c(pose) - E(pose) / F        (m; c the body's centroid)
+
+for a load along a fixed line l, with the body in contact along Δ as before; for a load
+along the push (l = Δ, a tibia) that is the travel less E / F. A load that pulls toward a
+point o (a patella's quadriceps toward the femur, its tendon in E holding it against the
+pull) does the work -|o - c|, and l is the unit vector from c to o. Each contact patch's
+gradient of the travel, g, becomes the objective's gradient
+
+    G = (l . Δ - dE/ds / F) g + l_lateral - dE/dx / F
+
+over (slide e1, slide e2, arc about the centroid), where dE/ds is the energy's rate along
+the push (minus the tissue's pull along it) and dE/dx its rate over the lateral state. The
+factor in front of g is how hard the body is pressed into contact per unit load: where it
+is not positive the ligaments pull the body off the fixed body against its load, and the
+settle says so (`Status.PULLED`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from kneeseat_core.ligaments import Tissue
+from kneeseat_core.typed import Floats, Pose
+from .search import Search, translated
+
+__all__ = ['Objective', 'Travel', 'Work', 'objective_for']
+
+# How far to lift a pose for the objective to reach a value: at most this many Newton or
+# bisection steps, to within this many resolutions of the value.
+_LIFT_STEPS = 40
+_LIFT_TOL = 1e-3
+
+
+class Objective:
+    """The climb's measure of a pose at contact, and its first-order model."""
+
+    gain = ''        # what a gain is measured in, for the settle's reasons
+    lift_limit = math.inf   # deepest lift along Δ a single query may prove a gain with (m)
+
+    def value(self, pose: Pose) -> float:
+        """The objective with the body at `pose` (m)."""
+        raise NotImplementedError
+
+    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
+        """(k, 3) each patch's objective gradient over (slide e1, slide e2, arc) from its
+        travel gradient (k, 3), with the body at `pose`."""
+        raise NotImplementedError
+
+    def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
+        """How far along Δ `target` must be lifted for the objective there to be `gain`
+        above its value at `base` lifted by `base_gap` (m). Where that is deeper than
+        `lift_limit` the query would prove nothing: the caller finds the contact instead."""
+        raise NotImplementedError
+
+    def target(self, base: Pose, base_gap: float, gain: float) -> float:
+        """The objective `gain` above its value at `base` lifted by `base_gap`."""
+        return self.value(translated(base, base_gap * self.search_push())) + gain
+
+    def search_push(self) -> Floats:
+        """Δ (3,)."""
+        raise NotImplementedError
+
+    def pressing(self, pose: Pose) -> float:
+        """How hard the body at `pose` is pressed into contact per unit load (1 for the
+        travel); not positive: the tissue pulls it off against its load."""
+        raise NotImplementedError
+
+    def pulled_off(self, pose: Pose) -> str:
+        """Why the body at `pose` leaves contact (the end's reason)."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Travel(Objective):
+    """Geometry alone: the travel along the push (the patent's measure), bit for bit the
+    climb's arithmetic before soft tissue existed."""
+
+    search: Search
+    gain = 'along the push'
+
+    def value(self, pose: Pose) -> float:
+        """The pose's depth along Δ (the travel up to a constant)."""
+        return self.search.depth(pose)
+
+    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
+        """The travel gradients themselves."""
+        return travel_grads
+
+    def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
+        """`gain + base_gap`: a lateral move leaves the depth along Δ as it was."""
+        return gain + base_gap
+
+    def pressing(self, pose: Pose) -> float:
+        """Always pressed: the push is all there is."""
+        return 1.0
+
+    def pulled_off(self, pose: Pose) -> str:
+        """Never happens without tissue."""
+        return ''
+
+    def search_push(self) -> Floats:
+        """Δ (3,)."""
+        return self.search.push
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Work(Objective):
+    """The load's work less the tissue's energy, per unit load (module docstring)."""
+
+    search: Search
+    tissue: Tissue | None
+    load_n: float
+    toward: Floats | None        # (3,) the point the load pulls toward, or None: the push
+    arm: float                   # m of arc per radian of spin (the climb's)
+    gain = "in the load's work less the ligaments' energy (per unit load)"
+
+    @property
+    def lift_limit(self) -> float:       # type: ignore[override]
+        """One translation step: a deeper lift can pass through an open sheet, or through
+        a place where the tissue's pull along Δ changes sign."""
+        return self.search.params.step_m
+
+    def search_push(self) -> Floats:
+        """Δ (3,)."""
+        return self.search.push
+
+    def line(self, pose: Pose) -> Floats:
+        """(3,) unit direction of the load on the body at `pose`."""
+        if self.toward is None:
+            return self.search.push
+        d = self.toward - self.search.centre(pose)
+        out: Floats = d / math.sqrt(float(d @ d))
+        return out
+
+    def value(self, pose: Pose) -> float:
+        """The load's work (l . c, or -|o - c|) less E / F (m)."""
+        energy = 0.0 if self.tissue is None else self.tissue.energy(pose)
+        centre = self.search.centre(pose)
+        if self.toward is None:
+            work = float(self.search.push @ centre)
+        else:
+            d = self.toward - centre
+            work = -math.sqrt(float(d @ d))
+        return work - energy / self.load_n
+
+    def _rates(self, pose: Pose) -> tuple[float, Floats]:
+        """dE/ds / F along Δ, and dE/dx / F over (slide e1, slide e2, arc), at `pose`."""
+        if self.tissue is None:
+            return 0.0, np.zeros(3)
+        s = self.search
+        _, points, grad = self.tissue.loads(pose)
+        lever = np.cross(s.push, points - s.centre(pose)) / self.arm
+        along = float(np.sum(grad @ s.push)) / self.load_n
+        lateral = np.array([float(np.sum(grad @ s.e1)), float(np.sum(grad @ s.e2)),
+                            float(np.einsum('ij,ij->', grad, lever))]) / self.load_n
+        return along, lateral
+
+    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
+        """G = (l . Δ - dE/ds / F) g + l_lateral - dE/dx / F (module docstring)."""
+        s = self.search
+        along, lateral = self._rates(pose)
+        line = self.line(pose)
+        press = float(line @ s.push) - along
+        drive = np.array([float(line @ s.e1), float(line @ s.e2), 0.0]) - lateral
+        out: Floats = (press * travel_grads + drive) * s.free
+        return out
+
+    def pressing(self, pose: Pose) -> float:
+        """l . Δ - dE/ds / F."""
+        return float(self.line(pose) @ self.search.push) - self._rates(pose)[0]
+
+    def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
+        """The lift h with the objective at `target` + h Δ equal to the target value:
+        Newton's method kept inside a bracket that bisection shrinks (the objective rises
+        along Δ while the body is pressed on; stiff tissue bends it strongly). A lift
+        beyond `lift_limit` either way is returned as soon as it is bracketed there: the
+        caller then weighs the contact itself."""
+        s, limit = self.search, self.lift_limit
+        want = self.target(base, base_gap, gain)
+
+        def rise(h: float) -> tuple[float, float]:
+            lifted = translated(target, h * s.push)
+            return self.value(lifted) - want, self.pressing(lifted)
+
+        miss, slope = rise(0.0)
+        if slope <= 0.0:
+            return math.inf                  # not pressed on: no lift proves anything
+        lo, hi = (-math.inf, 0.0) if miss > 0.0 else (0.0, math.inf)
+        h = -miss / slope
+        for _ in range(_LIFT_STEPS):
+            if not lo < h < hi:              # Newton left the bracket: bisect instead
+                h = 0.5 * (lo + hi) if math.isfinite(lo) and math.isfinite(hi) else \
+                    (2.0 * hi - s.params.resolution_m if math.isfinite(hi) else
+                     2.0 * lo + s.params.resolution_m)
+            if abs(h) > 2.0 * limit:
+                return h
+            miss, slope = rise(h)
+            if abs(miss) <= _LIFT_TOL * s.params.resolution_m:
+                return h
+            if miss > 0.0:
+                hi = h
+            else:
+                lo = h
+            h = h - miss / slope if slope > 0.0 else 0.5 * (lo + hi)
+        return math.inf                      # not found: the caller weighs the contact
+
+    def pulled_off(self, pose: Pose) -> str:
+        """The ligaments' pull along -Δ against the load's along Δ, in newtons."""
+        s = self.search
+        pull = self._rates(pose)[0] * self.load_n
+        load = float(self.line(pose) @ s.push) * self.load_n
+        return (f'pulled off: its ligaments pull it away from the fixed body with '
+                f'{pull:.0f} N along the push, more than the load presses it on '
+                f'({load:.0f} N along the push); no rest in contact at this attitude')
+
+
+def objective_for(search: Search, tissue: Tissue | None, arm: float) -> Objective:
+    """The travel when no tissue acts and the load (if any) is along the push, else the
+    load's work less the tissue's energy."""
+    p = search.params
+    if tissue is None and p.load_toward is None:
+        return Travel(search)
+    toward = None if p.load_toward is None else np.asarray(p.load_toward, dtype=np.float64)
+    return Work(search, tissue, float(p.load_n if p.load_n is not None else 1.0), toward, arm)
