@@ -167,45 +167,69 @@ class LigamentSet:
             seg_a.extend(range(start, start + count - 1))
             seg_b.extend(range(start + 1, start + count))
             seg_fibre.extend([i] * (count - 1))
-        return Tissue(tuple(f.name for f in fibres), tuple(f.bundle for f in fibres),
-                      np.array(local), np.array(moving), np.array(seg_a), np.array(seg_b),
-                      np.array(seg_fibre), np.array([f.slack_m for f in fibres]),
-                      np.array([f.stiffness_n for f in fibres]),
-                      np.array([f.transition for f in fibres]))
+        return Tissue.of(tuple(f.name for f in fibres), tuple(f.bundle for f in fibres),
+                         np.array(local), np.array(moving), np.array(seg_a), np.array(seg_b),
+                         np.array(seg_fibre), np.array([f.slack_m for f in fibres]),
+                         np.array([f.stiffness_n for f in fibres]),
+                         np.array([f.transition for f in fibres]))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Tissue:
     """The fibres acting on one moving body in one settle (`LigamentSet.tissue`).
 
-    Points flagged `moving` are in the moving body's frame; the others are fixed in the
-    reference frame. A pose is the moving body's (4, 4) fixed_from_moving.
+    The points are ordered with the k on the moving body first (in its frame), then the
+    ones fixed in the reference frame; a settle evaluates the energy hundreds of times, so
+    the structure is prepared once: the segments as point indices, and which fibre each
+    belongs to. A pose is the moving body's (4, 4) fixed_from_moving.
     """
 
     names: tuple[str, ...]       # (f,)
     bundles: tuple[str, ...]     # (f,)
-    local: Floats                # (n, 3) m
-    moving: Bools                # (n,)
+    moving_local: Floats         # (k, 3) m, points on the moving body, its frame
+    fixed_world: Floats          # (n - k, 3) m, the other points, reference frame
     seg_a: Ints                  # (s,) first point of each straight segment
     seg_b: Ints                  # (s,) second point
     seg_fibre: Ints              # (s,) the fibre each segment belongs to
     slack_m: Floats              # (f,)
     stiffness_n: Floats          # (f,)
     transition: Floats           # (f,)
+    incidence: Floats            # (k, s) +1 / -1 where a segment ends / starts on point j
+
+    @classmethod
+    def of(cls, names: tuple[str, ...], bundles: tuple[str, ...], local: Floats,
+           moving: Bools, seg_a: Ints, seg_b: Ints, seg_fibre: Ints, slack_m: Floats,
+           stiffness_n: Floats, transition: Floats) -> Tissue:
+        """From points flagged `moving` (in the body's frame) or not (reference frame)."""
+        order = np.concatenate([np.flatnonzero(moving), np.flatnonzero(~moving)])
+        where = np.empty(len(order), dtype=np.int64)
+        where[order] = np.arange(len(order))
+        a, b = where[seg_a], where[seg_b]
+        k = int(moving.sum())
+        incidence = np.zeros((k, len(a)))
+        incidence[b[b < k], np.flatnonzero(b < k)] += 1.0
+        incidence[a[a < k], np.flatnonzero(a < k)] -= 1.0
+        return cls(names, bundles, local[order[:k]], local[order[k:]], a, b, seg_fibre,
+                   slack_m, stiffness_n, transition, incidence)
 
     def world(self, pose: Pose) -> Floats:
-        """(n, 3) every point in the reference frame with the body at `pose`."""
-        out = self.local.copy()
-        out[self.moving] = self.local[self.moving] @ pose[:3, :3].T + pose[:3, 3]
-        return out
+        """(n, 3) every point in the reference frame with the body at `pose` (the moving
+        body's first)."""
+        return np.concatenate([self.moving_local @ pose[:3, :3].T + pose[:3, 3],
+                               self.fixed_world])
+
+    def _segments(self, pose: Pose) -> tuple[Floats, Floats, Floats, Floats]:
+        """Every point, each segment's vector and length, each fibre's strain at `pose`."""
+        w = self.world(pose)
+        d = w[self.seg_b] - w[self.seg_a]
+        seg = np.sqrt(np.einsum('ij,ij->i', d, d))
+        lengths = np.bincount(self.seg_fibre, seg, minlength=len(self.slack_m))
+        strain: Floats = lengths / self.slack_m - 1.0
+        return w, d, seg, strain
 
     def strains(self, pose: Pose) -> Floats:
         """(f,) strain of every fibre with the body at `pose`."""
-        w = self.world(pose)
-        seg = np.linalg.norm(w[self.seg_b] - w[self.seg_a], axis=1)
-        lengths = np.bincount(self.seg_fibre, seg, minlength=len(self.slack_m))
-        out: Floats = lengths / self.slack_m - 1.0
-        return out
+        return self._segments(pose)[3]
 
     def energy(self, pose: Pose) -> float:
         """Elastic energy (J) of the fibres with the body at `pose`."""
@@ -217,19 +241,13 @@ class Tissue:
         frame) and the gradient of the energy with respect to it (k, 3, N): minus the force
         the fibres apply there. A rigid motion's energy rate is the sum of gradient . point
         velocity."""
-        w = self.world(pose)
-        d = w[self.seg_b] - w[self.seg_a]
-        seg = np.linalg.norm(d, axis=1)
-        lengths = np.bincount(self.seg_fibre, seg, minlength=len(self.slack_m))
-        strain = lengths / self.slack_m - 1.0
+        w, d, seg, strain = self._segments(pose)
         energy = float(fibre_energy(strain, self.stiffness_n, self.transition,
                                     self.slack_m).sum())
         tension = fibre_force(strain, self.stiffness_n, self.transition)[self.seg_fibre]
         pull = d * (tension / np.maximum(seg, 1e-12))[:, None]   # dL/d(b) = unit(b - a)
-        grad = np.zeros_like(w)
-        np.add.at(grad, self.seg_b, pull)
-        np.add.at(grad, self.seg_a, -pull)
-        return energy, w[self.moving], grad[self.moving]
+        k = len(self.moving_local)
+        return energy, w[:k], self.incidence @ pull
 
 
 # ---- reading a set --------------------------------------------------------------------

@@ -18,11 +18,15 @@ import shapes
 from conftest import SHARED_DATA
 from kneeseat_core.errors import ConfigError, SettleError
 from kneeseat_core.geometry import pose_from, rotation_about
+from kneeseat_core.knee import ligaments_from_metadata, load_config, materialise_default_knee
 from kneeseat_core.ligaments import (fibre_energy, fibre_force, LigamentSet, load_ligaments,
                                      parse_ligaments)
 from kneeseat_core.meshes import RigidBody
+from kneeseat_core.referee import Referee
+from kneeseat_core.referee.judge import Load
 from kneeseat_core.settle import settle, SettleParams
 from kneeseat_core.status import Status
+from kneeseat_core.sweep import build_table, InlineExecutor, summary_line
 
 BODIES = ['femur', 'tibia', 'patella']
 
@@ -132,12 +136,13 @@ ANCHOR_X = 0.5            # m: a far anchor, so the fibre pulls the ball almost 
 LOAD_N = 100.0
 
 
-def ball_in_bowl_with_a_side_fibre(slack_m: float) -> tuple[RigidBody, RigidBody, LigamentSet]:
+def ball_in_bowl_with_a_side_fibre(slack_m: float, k: float = 1000.0
+                                   ) -> tuple[RigidBody, RigidBody, LigamentSet]:
     bowl = RigidBody.from_mesh(shapes.bowl(BOWL_R, DEPTH, 30 * sc.MM))
     ball = RigidBody.from_mesh(shapes.sphere(BALL_R))
     centre_y = -DEPTH + BOWL_R - (BOWL_R - BALL_R)
     ligaments = parse_ligaments([fibre('side', [('femur', [ANCHOR_X, centre_y, 0.0]),
-                                                ('tibia', [0.0, 0.0, 0.0])], slack_m)],
+                                                ('tibia', [0.0, 0.0, 0.0])], slack_m, k)],
                                 'test', BODIES)
     return bowl, ball, ligaments
 
@@ -202,3 +207,121 @@ def test_a_tissue_without_a_load_is_refused() -> None:
         settle(bowl, ball, pose_from(np.eye(3), [0.0, 0.012, 0.0]),
                SettleParams(push=(0.0, -1.0, 0.0)),
                tissue=ligaments.tissue('tibia', {'femur': np.eye(4)}))
+
+
+# ---- the referee judges the same objective with its own energy ----------------------------
+def referee_load(ligaments: LigamentSet, load_n: float) -> Load:
+    fibres = ligaments.acting_on('tibia', ['femur'])
+    paths = tuple((np.array(f.points), np.array([b == 'tibia' for b in f.bodies]))
+                  for f in fibres)
+    return Load(load_n, None, paths, np.array([f.slack_m for f in fibres]),
+                np.array([f.stiffness_n for f in fibres]),
+                np.array([f.transition for f in fibres]))
+
+
+def test_the_referee_agrees_with_the_settle_and_refuses_the_rest_geometry_alone_finds() -> None:
+    # a stiff fibre: the ball rests about 20 degrees up the side, 0.7 mm of work per unit
+    # load above the bowl's bottom
+    bowl, ball, ligaments = ball_in_bowl_with_a_side_fibre(slack_m=ANCHOR_X - 0.02, k=3000.0)
+    tissue = ligaments.tissue('tibia', {'femur': np.eye(4)})
+    params = SettleParams(push=(0.0, -1.0, 0.0), load_n=LOAD_N, max_iterations=800)
+    result = settle(bowl, ball, pose_from(np.eye(3), [0.0, 0.012, 0.0]), params, tissue=tissue)
+    referee = Referee([shapes.bowl(BOWL_R, DEPTH, 30 * sc.MM)], [shapes.sphere(BALL_R)],
+                      np.array([0.0, -1.0, 0.0]), 1e-4, load=referee_load(ligaments, LOAD_N))
+    verdict = referee.judge(result.pose)
+    assert verdict.at_rest(1e-4), verdict
+    extent = referee.extent(result.pose, referee.measure(verdict.best_pose)[0])
+    # the fibre pins the ball up the side: within a resolution of its best the ball moves
+    # a fraction of a millimetre across the push (the bowl alone would allow no less)
+    assert 0.0 < extent.slide_m < 1.5e-3
+    plain = settle(bowl, ball, pose_from(np.eye(3), [0.0, 0.012, 0.0]),
+                   SettleParams(push=(0.0, -1.0, 0.0)))
+    assert plain.converged and np.linalg.norm(plain.pose[:3, 3] - result.pose[:3, 3]) > 1e-3
+    wrong = referee.judge(plain.pose)              # the bowl's bottom: the fibre pulls it up
+    assert not wrong.at_rest(1e-4) and wrong.slide_m > 2e-3
+
+
+# ---- knee configs with ligaments -------------------------------------------------------
+@pytest.fixture
+def knee_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'cache'))
+    return materialise_default_knee().parent
+
+
+def write_config(knee_dir: Path, text: str) -> Path:
+    path = knee_dir / 'variant.yaml'
+    path.write_text(text)
+    return path
+
+
+def test_the_default_knee_has_its_own_ligaments(knee_dir: Path) -> None:
+    config = load_config(knee_dir / 'default_knee.yaml')
+    assert config.ligaments is not None and config.ligaments.source == 'inline'
+    assert [f.bundle for f in config.ligaments.fibres] == ['MCL', 'LCL', 'ACL', 'PCL']
+    tibia, patella = config.bodies
+    assert tibia.load_n == 100.0 and patella.load_n is None
+    assert config.depends_on(patella) == ()          # no fibre reaches the patella
+
+
+@pytest.mark.parametrize('change, message', [
+    (('load_n: 100            # a relaxed knee moved by hand', ''),
+     r"bodies\[0\]\.load_n: 4 ligament fibres act on 'tibia'; give the load"),
+    (('load_n: 100            # a relaxed knee moved by hand', 'load_n: -5'),
+     r'bodies\[0\]\.load_n=-5 must be a positive number of newtons'),
+    (('load_n: 100            # a relaxed knee moved by hand', 'load_toward: [0, 1]'),
+     r'bodies\[0\]\.load_toward must be three numbers'),
+    (('{body: tibia, position: [0.0, -0.060, -0.030]}', '{body: fibula, position: [0, 0, 0]}'),
+     r"ligaments: ligament 'MCL'\.points\[1\]\.body 'fibula' is not a body of the config"),
+    (('slack_length_m: 0.0583', 'slack_lenght_m: 0.0583'), r"unknown key 'slack_lenght_m'"),
+    (('linear_stiffness_n: 2750', 'linear_stiffness_n: .nan'),
+     r"ligament 'MCL'\.linear_stiffness_n must be a positive number"),
+])
+def test_bad_ligament_keys_are_refused_with_the_key_named(knee_dir: Path,
+                                                          change: tuple[str, str],
+                                                          message: str) -> None:
+    text = (knee_dir / 'default_knee.yaml').read_text()
+    assert change[0] in text
+    with pytest.raises(ConfigError, match=message):
+        load_config(write_config(knee_dir, text.replace(change[0], change[1])))
+
+
+def test_a_ligaments_file_is_found_beside_the_meshes(knee_dir: Path) -> None:
+    text = (knee_dir / 'default_knee.yaml').read_text()
+    start = text.index('ligaments:\n')
+    end = text.index('bodies:\n')
+    (knee_dir / 'set.json').write_text(json.dumps({'units': 'm', 'ligaments': [
+        fibre('MCL', [('femur', [0.0, 0.0, -0.042]), ('tibia', [0.0, -0.06, -0.03])],
+              0.0583)]}))
+    config = load_config(write_config(knee_dir, text[:start] + 'ligaments: set.json\n'
+                                      + text[end:]))
+    assert config.ligaments is not None and config.ligaments.source == str(knee_dir / 'set.json')
+    with pytest.raises(ConfigError, match=r'ligaments file .*gone\.json not found'):
+        load_config(write_config(knee_dir, text[:start] + 'ligaments: gone.json\n' + text[end:]))
+
+
+def test_a_tendon_to_the_tibia_settles_the_patella_after_it_at_every_varus(
+        knee_dir: Path, tmp_path: Path) -> None:
+    """A fibre from the patella to the tibia: the patella is swept after the tibia, its
+    fibre attached to the tibia as it settled at each cell, so the patella (whose own
+    attitude ignores varus) is settled in every varus column instead of copied."""
+    text = (knee_dir / 'default_knee.yaml').read_text()
+    tendon = ('  - {name: PT, points: [{body: patella, position: [0.026, -0.012, -0.001]},\n'
+              '                        {body: tibia, position: [0.028, -0.045, -0.001]}],\n'
+              '     slack_length_m: 0.034, linear_stiffness_n: 3000}\n')
+    text = text.replace('bodies:\n', tendon + 'bodies:\n', 1)
+    text = text.replace('    varus_fraction: 0.0    # and ignore varus\n',
+                        '    varus_fraction: 0.0    # and ignore varus\n    load_n: 100\n')
+    config = load_config(write_config(knee_dir, text),
+                         overrides={'grid': {'flexion_deg': [0, -20, 20],
+                                             'varus_deg': [-6, 6, 6]}})
+    tibia, patella = config.bodies
+    assert config.depends_on(patella) == (0,) and config.depends_on(tibia) == ()
+    table = build_table(config, tmp_path / 'tendon.npz', InlineExecutor(), show_progress=False)
+    loads = table.metadata['soft_tissue']['loads']
+    assert loads['patella'] == {'load_n': 100.0, 'load_toward': None, 'fibres': 1}
+    positions = table.position_m[1]
+    assert not np.allclose(positions[:, 0], positions[:, 2], atol=1e-6)   # varus -6 vs +6
+    assert 'ligaments: 5 fibres from inline' in summary_line(table, tmp_path / 'tendon.npz')
+    # the tendon at each cell joins the patella to the tibia as the table holds them
+    ligaments = ligaments_from_metadata(table.metadata)
+    assert ligaments is not None and ligaments.sha256 == config.ligaments.sha256

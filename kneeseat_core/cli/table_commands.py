@@ -122,8 +122,23 @@ def _cmd_kinematics(args: argparse.Namespace) -> int:
     png = plot_kinematics(every, args.out_dir / 'kinematics.png', title=name,
                           reference=reference, others=others)
     print(kinematics_markdown(chosen), end='')
-    print(f'wrote {csv_path}, {md_path}, {png}')
+    written = [csv_path, md_path, png] + _ligament_report(table, args.out_dir, name,
+                                                          args.mesh_dir)
+    print(f'wrote {", ".join(str(w) for w in written)}')
     return EXIT_OK
+
+
+def _ligament_report(table: PoseTable, out_dir: Path, name: str,
+                     mesh_dir: Path | None) -> list[Path]:
+    """ligaments.csv and ligaments.png for a table built with ligaments (none otherwise)."""
+    from kneeseat_core.knee import ligaments_from_metadata           # trimesh
+    from kneeseat_core.report import bundle_loads, plot_bundle_strains, write_bundle_csv
+    ligaments = ligaments_from_metadata(table.metadata, mesh_dir)
+    if ligaments is None:
+        return []
+    loads = bundle_loads(table, ligaments)
+    return [write_bundle_csv(loads, out_dir / 'ligaments.csv'),
+            plot_bundle_strains(loads, out_dir / 'ligaments.png', title=name)]
 
 
 def register_commands(sub: Subcommands) -> None:
@@ -184,4 +199,7 @@ def register_commands(sub: Subcommands) -> None:
                    'knee_flexion_deg, value)')
     p.add_argument('--compare', type=Path, action='append', metavar='TABLE',
                    help='another table to draw as a dashed line (repeatable)')
+    p.add_argument('--mesh-dir', type=Path,
+                   help="directory that holds the table's ligament file (a table built with "
+                   'ligaments also gets ligaments.csv and ligaments.png)')
     p.set_defaults(command=_cmd_kinematics)

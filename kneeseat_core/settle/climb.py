@@ -94,11 +94,12 @@ class _Climb:
         arm = max(search.pair.moving.reach, p.step_m)
         rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
             else p.resolution_m / arm
-        return cls(search=search, tuning=tuning, objective=objective_for(search, tissue, arm),
-                   arm=arm,
+        objective = objective_for(search, tissue, arm)
+        return cls(search=search, tuning=tuning, objective=objective, arm=arm,
                    tol=tuning.contact_tol_res * p.resolution_m,
                    # a slope that cannot gain one resolution across the whole envelope
-                   flat=p.resolution_m / max(p.max_slide_m, p.max_spin_rad * arm),
+                   flat=objective.precision * p.resolution_m
+                   / max(p.max_slide_m, p.max_spin_rad * arm),
                    finest=min(p.resolution_m, rot_res * arm),
                    pose=bracket.free, touching=bracket.touching,
                    floor=search.patches(bracket.touching), step=p.step_m)
@@ -250,11 +251,12 @@ class _Climb:
             lifted = translated(target, kept * s.push)
             if s.collides(lifted):
                 return self._blocked(direction, slope, length, measured, lifted, target)
-            bracket = s.touch(lifted, max(promised - kept, 0.0), tau, free_at_start=True)
+            bracket = s.touch(lifted, self.objective.travel_guess(promised, kept), tau,
+                              free_at_start=True)
         else:
             # the load barely presses along the push: a lift that deep proves nothing (an
             # open sheet has no inside), so the contact itself is found and weighed
-            bracket = s.touch(target, max(promised, 0.0), tau)
+            bracket = s.touch(target, self.objective.travel_guess(promised, 0.0), tau)
             if bracket is not None and self.objective.value(bracket.free) < \
                     self.objective.target(self.pose, base_gap, gain):
                 return self._blocked(direction, slope, length, measured, bracket.touching,
@@ -345,7 +347,7 @@ class _Climb:
         """D5: probe around the pose; the outcome when a probe gained (it was followed, or
         the climb ended), None at rest."""
         s, t = self.search, self.tuning
-        lift = t.probe_lift_res * s.params.resolution_m
+        lift = self.objective.precision * t.probe_lift_res * s.params.resolution_m
         checks_before, started = s.pair.checks, time.perf_counter()
         # the pose's own bracket is narrowed first, so a probe free at the lift has gained
         # at least the lift less a sliver: every probe that succeeds is real progress

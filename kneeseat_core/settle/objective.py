@@ -46,6 +46,9 @@ class Objective:
 
     gain = ''        # what a gain is measured in, for the settle's reasons
     lift_limit = math.inf   # deepest lift along Δ a single query may prove a gain with (m)
+    # the share of the resolution the objective is climbed to: a smooth energy's maximum
+    # lies in a valley the travel's resolution would leave a millimetre wide
+    precision = 1.0
 
     def value(self, pose: Pose) -> float:
         """The objective with the body at `pose` (m)."""
@@ -73,6 +76,12 @@ class Objective:
     def pressing(self, pose: Pose) -> float:
         """How hard the body at `pose` is pressed into contact per unit load (1 for the
         travel); not positive: the tissue pulls it off against its load."""
+        raise NotImplementedError
+
+    def travel_guess(self, promised: float, lifted: float) -> float:
+        """Where contact is expected beyond a pose lifted by `lifted` after a move that
+        promised `promised` of the objective (m of travel; a guess that only speeds up
+        finding it)."""
         raise NotImplementedError
 
     def pulled_off(self, pose: Pose) -> str:
@@ -104,6 +113,10 @@ class Travel(Objective):
         """Always pressed: the push is all there is."""
         return 1.0
 
+    def travel_guess(self, promised: float, lifted: float) -> float:
+        """The promise is travel: what is left of it beyond the lift."""
+        return max(promised - lifted, 0.0)
+
     def pulled_off(self, pose: Pose) -> str:
         """Never happens without tissue."""
         return ''
@@ -113,7 +126,7 @@ class Travel(Objective):
         return self.search.push
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(slots=True, eq=False)
 class Work(Objective):
     """The load's work less the tissue's energy, per unit load (module docstring)."""
 
@@ -122,7 +135,11 @@ class Work(Objective):
     load_n: float
     toward: Floats | None        # (3,) the point the load pulls toward, or None: the push
     arm: float                   # m of arc per radian of spin (the climb's)
+    # the tissue's energy and rates at the last pose asked about: a climb asks for the
+    # value, the pressing and the gradients at one pose in turn
+    _last: tuple[bytes, float, float, Floats] | None = None
     gain = "in the load's work less the ligaments' energy (per unit load)"
+    precision = 0.1
 
     @property
     def lift_limit(self) -> float:       # type: ignore[override]
@@ -142,27 +159,40 @@ class Work(Objective):
         out: Floats = d / math.sqrt(float(d @ d))
         return out
 
+    def _tissue(self, pose: Pose) -> tuple[float, float, Floats]:
+        """E / F, dE/ds / F along Δ and dE/dx / F over (slide e1, slide e2, arc) at `pose`
+        (one evaluation of the tissue, kept for the next question about the same pose)."""
+        if self.tissue is None:
+            return 0.0, 0.0, np.zeros(3)
+        key = pose.tobytes()
+        if self._last is not None and self._last[0] == key:
+            return self._last[1], self._last[2], self._last[3]
+        s = self.search
+        energy, points, grad = self.tissue.loads(pose)
+        # the spin's rate at each point is push x (point - centre) / arm; its sum against
+        # the gradients is the gradients' moment about the centre along the push
+        total = grad.sum(axis=0)
+        moment = np.cross(points - s.centre(pose), grad).sum(axis=0) @ s.push / self.arm
+        along = float(total @ s.push) / self.load_n
+        lateral = np.array([float(total @ s.e1), float(total @ s.e2),
+                            float(moment)]) / self.load_n
+        self._last = (key, energy / self.load_n, along, lateral)
+        return energy / self.load_n, along, lateral
+
     def value(self, pose: Pose) -> float:
         """The load's work (l . c, or -|o - c|) less E / F (m)."""
-        energy = 0.0 if self.tissue is None else self.tissue.energy(pose)
+        per_load = self._tissue(pose)[0]
         centre = self.search.centre(pose)
         if self.toward is None:
             work = float(self.search.push @ centre)
         else:
             d = self.toward - centre
             work = -math.sqrt(float(d @ d))
-        return work - energy / self.load_n
+        return work - per_load
 
     def _rates(self, pose: Pose) -> tuple[float, Floats]:
         """dE/ds / F along Δ, and dE/dx / F over (slide e1, slide e2, arc), at `pose`."""
-        if self.tissue is None:
-            return 0.0, np.zeros(3)
-        s = self.search
-        _, points, grad = self.tissue.loads(pose)
-        lever = np.cross(s.push, points - s.centre(pose)) / self.arm
-        along = float(np.sum(grad @ s.push)) / self.load_n
-        lateral = np.array([float(np.sum(grad @ s.e1)), float(np.sum(grad @ s.e2)),
-                            float(np.einsum('ij,ij->', grad, lever))]) / self.load_n
+        _, along, lateral = self._tissue(pose)
         return along, lateral
 
     def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
@@ -178,6 +208,10 @@ class Work(Objective):
     def pressing(self, pose: Pose) -> float:
         """l . Δ - dE/ds / F."""
         return float(self.line(pose) @ self.search.push) - self._rates(pose)[0]
+
+    def travel_guess(self, promised: float, lifted: float) -> float:
+        """None: the promise is work, not travel (contact is searched from the pose)."""
+        return 0.0
 
     def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
         """The lift h with the objective at `target` + h Δ equal to the target value:

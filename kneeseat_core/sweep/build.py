@@ -23,7 +23,7 @@ from tqdm import tqdm
 from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import quat_from_matrix
 from kneeseat_core.knee import BodySpec, KneeConfig
-from kneeseat_core.status import STATUS_NAMES
+from kneeseat_core.status import Status, STATUS_NAMES
 from kneeseat_core.table import PoseTable, write_table
 from .continuity import continuity
 from .phases import sweep, SweepResult
@@ -81,9 +81,25 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
                                  config.flexion_rad, config.varus_rad,
                                  [b.name for b in config.bodies], config.attitudes()),
         'backed_out': _backed_out(config, result),
+        'soft_tissue': _soft_tissue(config),
     }
     return PoseTable(config.flexion_rad, config.varus_rad, result.position_m,
                      result.orientation_xyzw, result.converged, result.iterations, metadata)
+
+
+def _soft_tissue(config: KneeConfig) -> dict[str, Any] | None:
+    """The ligament set (its file and SHA-256) and each body's load: what the rest of each
+    cell was a maximum of (None: geometry alone, the travel)."""
+    ligaments = config.ligaments
+    if ligaments is None:
+        return None
+    return {'ligaments': {'source': ligaments.source, 'sha256': ligaments.sha256,
+                          'fibres': len(ligaments.fibres), 'bundles': list(ligaments.bundles)},
+            'loads': {b.name: {'load_n': b.load_n, 'load_toward': b.load_toward,
+                               'fibres': len(ligaments.acting_on(b.name,
+                                                                 config.placed_before(b)))}
+                      for b in config.bodies},
+            'method': config.settle.method}
 
 
 def _backed_out(config: KneeConfig, result: SweepResult) -> dict[str, Any]:
@@ -137,4 +153,16 @@ def summary_line(table: PoseTable, out: Path) -> str:
         line += (f'; {over} neighbour pairs over {cont["bound_mm"]:g} mm / '
                  f'{cont["bound_deg"]:g} deg, {len(cont["branch_changes"])} of them branch '
                  'changes between cells at rest')
+    tissue = table.metadata.get('soft_tissue')
+    if isinstance(tissue, dict):
+        lig = tissue['ligaments']
+        loads = ', '.join(f'{name} {entry["load_n"]:g} N ({entry["fibres"]} fibres)'
+                          for name, entry in tissue['loads'].items()
+                          if entry.get('load_n') is not None)
+        pulled = int(np.sum(np.asarray(table.metadata['cells']['status']) == Status.PULLED))
+        line += (f'; ligaments: {lig["fibres"]} fibres from {Path(lig["source"]).name} '
+                 f'(sha256 {lig["sha256"][:12]}), loads {loads}'
+                 + (f', {pulled} cells pulled off by them' if pulled else '')
+                 + ('; the patent method ignores them' if tissue.get('method') == 'patent'
+                    else ''))
     return line

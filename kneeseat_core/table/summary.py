@@ -70,6 +70,14 @@ def describe(table: PoseTable) -> str:
     settle = meta.get('settle')
     if isinstance(settle, dict) and settle:
         lines.append('settle:     ' + ', '.join(f'{k}={v}' for k, v in settle.items()))
+    tissue = _mapping(meta.get('soft_tissue'))
+    if tissue:
+        lig = _mapping(tissue.get('ligaments'))
+        lines.append(f'ligaments:  {lig.get("fibres", "?")} fibres in '
+                     f'{len(lig.get("bundles", []))} bundles from {lig.get("source", "?")} '
+                     f'(sha256 {str(lig.get("sha256", "?"))[:12]}); loads: ' + ', '.join(
+                         f'{name} {_mapping(e).get("load_n")} N'
+                         for name, e in _mapping(tissue.get('loads')).items()))
     summary = meta.get('summary')
     if isinstance(summary, dict) and summary:
         lines.append('summary:    ' + ', '.join(f'{k}={v}' for k, v in summary.items()))
