@@ -383,9 +383,15 @@ class _Climb:
         objective: one query at the lift that proves it, or, where that lift is too deep
         to prove anything, the contact itself found and weighed."""
         s, objective = self.search, self.objective
+        # the objective is concave along Δ (the load's work is, the energy convex), so one
+        # Newton step from the lateral pose lifts no higher than needed: touching there, the
+        # probe cannot gain; free, the lift is found exactly and asked again
+        first = objective.first_lift(cand, self.pose, 0.0, lift)
+        if abs(first) <= objective.lift_limit and s.collides(translated(cand, first * s.push)):
+            return False
         h = objective.lift_to(cand, self.pose, 0.0, lift)
         if abs(h) <= objective.lift_limit:
-            return not s.collides(translated(cand, h * s.push))
+            return h == first or not s.collides(translated(cand, h * s.push))
         bracket = s.touch(cand, 0.0, self.tol)
         return bracket is not None and \
             objective.value(bracket.free) >= objective.target(self.pose, 0.0, lift)

@@ -24,7 +24,7 @@ settle says so (`Status.PULLED`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 
 import numpy as np
@@ -39,6 +39,8 @@ __all__ = ['Objective', 'Travel', 'Work', 'objective_for']
 # bisection steps, to within this many resolutions of the value.
 _LIFT_STEPS = 40
 _LIFT_TOL = 1e-3
+# Poses whose tissue evaluation a Work objective keeps.
+_SEEN = 4
 
 
 class Objective:
@@ -64,6 +66,11 @@ class Objective:
         above its value at `base` lifted by `base_gap` (m). Where that is deeper than
         `lift_limit` the query would prove nothing: the caller finds the contact instead."""
         raise NotImplementedError
+
+    def first_lift(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
+        """One Newton step of `lift_to` from no lift: at most the lift needed (the objective
+        is concave along Δ)."""
+        return self.lift_to(target, base, base_gap, gain)
 
     def target(self, base: Pose, base_gap: float, gain: float) -> float:
         """The objective `gain` above its value at `base` lifted by `base_gap`."""
@@ -135,9 +142,10 @@ class Work(Objective):
     load_n: float
     toward: Floats | None        # (3,) the point the load pulls toward, or None: the push
     arm: float                   # m of arc per radian of spin (the climb's)
-    # the tissue's energy and rates at the last pose asked about: a climb asks for the
-    # value, the pressing and the gradients at one pose in turn
-    _last: tuple[bytes, float, float, Floats] | None = None
+    # the tissue's energy and rates at the last few poses asked about: a climb asks for the
+    # value, the pressing and the gradients at a pose in turn, and about its current pose
+    # between the others
+    _seen: dict[bytes, tuple[float, float, Floats]] = field(default_factory=dict)
     gain = "in the load's work less the ligaments' energy (per unit load)"
     precision = 0.1
 
@@ -150,6 +158,15 @@ class Work(Objective):
     def search_push(self) -> Floats:
         """Δ (3,)."""
         return self.search.push
+
+    def first_lift(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
+        """One Newton step from no lift (one evaluation of the tissue): the objective is
+        concave along Δ (the load's work is; the energy is convex in each length, each
+        length convex along Δ), so this lifts no higher than the exact lift."""
+        slope = self.pressing(target)
+        if slope <= 0.0:
+            return math.inf
+        return (self.target(base, base_gap, gain) - self.value(target)) / slope
 
     def line(self, pose: Pose) -> Floats:
         """(3,) unit direction of the load on the body at `pose`."""
@@ -165,8 +182,9 @@ class Work(Objective):
         if self.tissue is None:
             return 0.0, 0.0, np.zeros(3)
         key = pose.tobytes()
-        if self._last is not None and self._last[0] == key:
-            return self._last[1], self._last[2], self._last[3]
+        seen = self._seen.get(key)
+        if seen is not None:
+            return seen
         s = self.search
         energy, points, grad = self.tissue.loads(pose)
         # the spin's rate at each point is push x (point - centre) / arm; its sum against
@@ -176,7 +194,9 @@ class Work(Objective):
         along = float(total @ s.push) / self.load_n
         lateral = np.array([float(total @ s.e1), float(total @ s.e2),
                             float(moment)]) / self.load_n
-        self._last = (key, energy / self.load_n, along, lateral)
+        if len(self._seen) >= _SEEN:
+            del self._seen[next(iter(self._seen))]          # the oldest
+        self._seen[key] = (energy / self.load_n, along, lateral)
         return energy / self.load_n, along, lateral
 
     def value(self, pose: Pose) -> float:
