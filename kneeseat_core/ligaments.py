@@ -57,25 +57,31 @@ _POINT_KEYS = {'body', 'position', 'source_frame', 'source_location', 'on_mesh'}
 _UNITS = {'m': 1.0, 'mm': 1e-3}
 
 
+def _law(strain: Floats, stiffness_n: Floats, transition: Floats) -> tuple[Floats, Floats]:
+    """Tension (N) and energy per slack length (J/m) at `strain`, in one pass: with m the
+    strain clipped to [0, e_t] and l what lies above e_t, f = k (m^2 / (2 e_t) + l) and
+    E / L0 = k (m^3 / (6 e_t) + m l / 2 + l^2 / 2), the module docstring's pieces joined."""
+    e = np.maximum(strain, 0.0)
+    m = np.minimum(e, transition)
+    over = e - m
+    toe = m * m / (2.0 * transition)
+    force: Floats = stiffness_n * (toe + over)
+    energy: Floats = stiffness_n * (m * toe / 3.0 + over * (0.5 * m + 0.5 * over))
+    return force, energy
+
+
 def fibre_force(strain: Floats, stiffness_n: Floats, transition: Floats) -> Floats:
     """Tension (N) of fibres at `strain` (Blankevoort 1991, module docstring); arrays
     broadcast."""
-    e = np.asarray(strain, dtype=np.float64)
-    toe = stiffness_n * e * e / (2.0 * transition)
-    linear = stiffness_n * (e - 0.5 * transition)
-    out: Floats = np.where(e <= 0.0, 0.0, np.where(e < transition, toe, linear))
-    return out
+    return _law(np.asarray(strain, dtype=np.float64), stiffness_n, transition)[0]
 
 
 def fibre_energy(strain: Floats, stiffness_n: Floats, transition: Floats,
                  slack_m: Floats) -> Floats:
     """Elastic energy (J) stored in fibres at `strain`: the integral of `fibre_force` over
     the length from the slack length."""
-    e = np.asarray(strain, dtype=np.float64)
-    toe = slack_m * stiffness_n * e ** 3 / (6.0 * transition)
-    linear = slack_m * stiffness_n * (0.5 * e * e - 0.5 * transition * e
-                                      + transition * transition / 6.0)
-    out: Floats = np.where(e <= 0.0, 0.0, np.where(e < transition, toe, linear))
+    out: Floats = slack_m * _law(np.asarray(strain, dtype=np.float64), stiffness_n,
+                                 transition)[1]
     return out
 
 
@@ -195,6 +201,12 @@ class Tissue:
     stiffness_n: Floats          # (f,)
     transition: Floats           # (f,)
     incidence: Floats            # (k, s) +1 / -1 where a segment ends / starts on point j
+    # each segment's vector b - a is seg_local turned by the pose, plus seg_sign times the
+    # pose's translation, plus seg_fixed (the ends fixed in the reference frame)
+    seg_local: Floats            # (s, 3) m, body frame
+    seg_sign: Floats             # (s,) moving ends: +1 end, -1 start, 0 both or none
+    seg_fixed: Floats            # (s, 3) m, reference frame
+    single: bool                 # every fibre is one segment (no sums over segments)
 
     @classmethod
     def of(cls, names: tuple[str, ...], bundles: tuple[str, ...], local: Floats,
@@ -209,8 +221,13 @@ class Tissue:
         incidence = np.zeros((k, len(a)))
         incidence[b[b < k], np.flatnonzero(b < k)] += 1.0
         incidence[a[a < k], np.flatnonzero(a < k)] -= 1.0
-        return cls(names, bundles, local[order[:k]], local[order[k:]], a, b, seg_fibre,
-                   slack_m, stiffness_n, transition, incidence)
+        placed = local[order]
+        fixed_end = np.where((b >= k)[:, None], placed[b], 0.0) \
+            - np.where((a >= k)[:, None], placed[a], 0.0)
+        return cls(names, bundles, placed[:k], placed[k:], a, b, seg_fibre,
+                   slack_m, stiffness_n, transition, incidence,
+                   incidence.T @ placed[:k], incidence.sum(axis=0), fixed_end,
+                   bool(np.array_equal(seg_fibre, np.arange(len(slack_m)))))
 
     def world(self, pose: Pose) -> Floats:
         """(n, 3) every point in the reference frame with the body at `pose` (the moving
@@ -249,6 +266,29 @@ class Tissue:
         k = len(self.moving_local)
         return energy, w[:k], self.incidence @ pull
 
+
+    def rates(self, pose: Pose) -> tuple[float, Floats, Floats]:
+        """Energy (J) at `pose` and its rates under the body's rigid motion: dE/dt (3,, N)
+        for a translation t and dE/dθ (3,, N m) for a small rotation θ about the reference
+        frame's origin (the net force and moment the fibres apply, negated). What `loads`
+        gives summed, computed on the segments directly: a settle asks for it at every pose
+        it weighs."""
+        rot, shift = pose[:3, :3], pose[:3, 3]
+        moving = self.seg_local @ rot.T + self.seg_sign[:, None] * shift
+        d = moving + self.seg_fixed
+        seg = np.sqrt(np.einsum('ij,ij->i', d, d))
+        lengths = seg if self.single else \
+            np.bincount(self.seg_fibre, seg, minlength=len(self.slack_m))
+        force, per_slack = _law(lengths / self.slack_m - 1.0, self.stiffness_n,
+                                self.transition)
+        energy = float(per_slack @ self.slack_m)
+        tension = force if self.single else force[self.seg_fibre]
+        pull = d * (tension / np.maximum(seg, 1e-12))[:, None]
+        # the moment of each segment's pull at its moving end: sum of moving_s x pull_s,
+        # read off the antisymmetric part of moving^T pull
+        m = moving.T @ pull
+        torque = np.array([m[1, 2] - m[2, 1], m[2, 0] - m[0, 2], m[0, 1] - m[1, 0]])
+        return energy, self.seg_sign @ pull, torque
 
 # ---- reading a set --------------------------------------------------------------------
 def load_ligaments(path: Path, bodies: Sequence[str]) -> LigamentSet:

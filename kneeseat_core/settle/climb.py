@@ -105,6 +105,12 @@ class _Climb:
                    floor=search.patches(bracket.touching), step=p.step_m)
 
     @property
+    def proof_lift(self) -> float:
+        """The gain (m) a probe of the proof of rest must show."""
+        return self.objective.precision * self.tuning.probe_lift_res \
+            * self.search.params.resolution_m
+
+    @property
     def has_step(self) -> bool:
         """A move of at least the shortest length the climb makes is left."""
         return self.step >= self.tuning.min_move * self.finest
@@ -238,6 +244,8 @@ class _Climb:
         if length < t.min_move * self.finest:
             return _Outcome(0.0)                       # the step has run out
         promised = length * slope
+        if self.objective.smooth and promised < self.proof_lift:
+            return _Outcome(0.0)                       # the proof's to find (Objective.smooth)
         floor_tol = t.finest_tol_res * s.params.resolution_m
         tau = min(self.tol, max(t.measure * promised, floor_tol))
         width = self._narrow(tau)
@@ -347,7 +355,7 @@ class _Climb:
         """D5: probe around the pose; the outcome when a probe gained (it was followed, or
         the climb ended), None at rest."""
         s, t = self.search, self.tuning
-        lift = self.objective.precision * t.probe_lift_res * s.params.resolution_m
+        lift = self.proof_lift
         checks_before, started = s.pair.checks, time.perf_counter()
         # the pose's own bracket is narrowed first, so a probe free at the lift has gained
         # at least the lift less a sliver: every probe that succeeds is real progress

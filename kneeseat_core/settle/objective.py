@@ -51,6 +51,10 @@ class Objective:
     # the share of the resolution the objective is climbed to: a smooth energy's maximum
     # lies in a valley the travel's resolution would leave a millimetre wide
     precision = 1.0
+    # smooth between contacts: a move promising less than the proof of rest can see is left
+    # to the proof, whose longer probes find the way along a shallow valley that short
+    # moves would zigzag across (the travel, piecewise flat, climbs on such moves)
+    smooth = False
 
     def value(self, pose: Pose) -> float:
         """The objective with the body at `pose` (m)."""
@@ -148,6 +152,7 @@ class Work(Objective):
     _seen: dict[bytes, tuple[float, float, Floats]] = field(default_factory=dict)
     gain = "in the load's work less the ligaments' energy (per unit load)"
     precision = 0.1
+    smooth = True
 
     @property
     def lift_limit(self) -> float:       # type: ignore[override]
@@ -186,14 +191,16 @@ class Work(Objective):
         if seen is not None:
             return seen
         s = self.search
-        energy, points, grad = self.tissue.loads(pose)
-        # the spin's rate at each point is push x (point - centre) / arm; its sum against
-        # the gradients is the gradients' moment about the centre along the push
-        total = grad.sum(axis=0)
-        moment = np.cross(points - s.centre(pose), grad).sum(axis=0) @ s.push / self.arm
-        along = float(total @ s.push) / self.load_n
-        lateral = np.array([float(total @ s.e1), float(total @ s.e2),
-                            float(moment)]) / self.load_n
+        energy, force, torque = self.tissue.rates(pose)
+        # the spin turns the body about the axis through its centre along the push, at one
+        # radian per arm of arc: its rate is the moment about the centre along the push
+        (cx, cy, cz), (fx, fy, fz), (ux, uy, uz) = s.centre(pose), force, s.push
+        about_centre = ux * (cy * fz - cz * fy) + uy * (cz * fx - cx * fz) \
+            + uz * (cx * fy - cy * fx)                      # (c x force) . push
+        moment = (float(torque @ s.push) - about_centre) / self.arm
+        along = float(force @ s.push) / self.load_n
+        lateral = np.array([float(force @ s.e1), float(force @ s.e2),
+                            moment]) / self.load_n
         if len(self._seen) >= _SEEN:
             del self._seen[next(iter(self._seen))]          # the oldest
         self._seen[key] = (energy / self.load_n, along, lateral)
