@@ -291,7 +291,7 @@ def test_the_default_knee_has_its_own_ligaments(knee_dir: Path) -> None:
     (('{body: tibia, position: [0.0, -0.060, -0.030]}', '{body: fibula, position: [0, 0, 0]}'),
      r"ligaments: ligament 'MCL'\.points\[1\]\.body 'fibula' is not a body of the config"),
     (('slack_length_m: 0.0583', 'slack_lenght_m: 0.0583'), r"unknown key 'slack_lenght_m'"),
-    (('linear_stiffness_n: 2750', 'linear_stiffness_n: .nan'),
+    (('linear_stiffness_n: 5000', 'linear_stiffness_n: .nan'),
      r"ligament 'MCL'\.linear_stiffness_n must be a positive number"),
 ])
 def test_bad_ligament_keys_are_refused_with_the_key_named(knee_dir: Path,
