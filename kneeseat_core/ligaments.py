@@ -266,7 +266,6 @@ class Tissue:
         k = len(self.moving_local)
         return energy, w[:k], self.incidence @ pull
 
-
     def rates(self, pose: Pose) -> tuple[float, Floats, Floats]:
         """Energy (J) at `pose` and its rates under the body's rigid motion: dE/dt (3,, N)
         for a translation t and dE/dθ (3,, N m) for a small rotation θ about the reference
@@ -289,6 +288,7 @@ class Tissue:
         m = moving.T @ pull
         torque = np.array([m[1, 2] - m[2, 1], m[2, 0] - m[0, 2], m[0, 1] - m[1, 0]])
         return energy, self.seg_sign @ pull, torque
+
 
 # ---- reading a set --------------------------------------------------------------------
 def load_ligaments(path: Path, bodies: Sequence[str]) -> LigamentSet:
