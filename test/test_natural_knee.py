@@ -1,15 +1,17 @@
 """The natural knee: its configs, and a coarse table checked at rest.
 
 The meshes live outside the repository (../shared/data/natural_knee); without them these
-tests skip. The rest check uses python-fcl objects of its own and nothing of the settle but
-its answers: at every converged cell the body touches the femur (one resolution further
-along the cell's push collides) without penetrating it, and no admissible move - a slide
-across the push (not along a locked slide), a turn about the push through the body's
-centroid, or both - lets it go one resolution further along the push.
+tests skip. The rest check uses python-fcl objects and a ligament energy of its own and
+nothing of the settle but its answers: at every converged cell the body touches the femur
+(one resolution further along the cell's push collides) without penetrating it, and no
+admissible move - a slide across the push (not along a locked slide), a turn about the push
+through the body's centroid, or both - lets it go one resolution further along the push
+and be better off by a resolution: in the load's work less the ligaments' energy, per unit
+load (the Blankevoort law integrated here), or, without ligaments, in the travel alone.
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 import itertools
 import json
 import math
@@ -51,7 +53,12 @@ def test_configs_load_with_every_mesh() -> None:
                                                       'meniscus_lateral.stl']
     assert config.reference.display_mesh is not None
     assert config.reference.display_mesh.name == 'femur_bone.stl'
-    assert patella.locked_slide == (0.0, 1.0, 0.0) and patella.varus_fraction == 0.0
+    # its tendon and retinacula hold the patella along the groove: no locked slide
+    assert patella.locked_slide is None and patella.varus_fraction == 0.0
+    assert patella.load_n == 100.0 and patella.load_toward == (0.04, 0.25, 0.01)
+    assert tibia.load_n == 100.0 and tibia.load_toward is None
+    assert config.ligaments is not None and Path(config.ligaments.source).name == 'ligaments.json'
+    assert len(config.ligaments.fibres) == 76 and len(config.ligaments.bundles) == 14
     assert patella.flexion_fraction == 0.65 and patella.push_flexion_fraction == 0.67
     above_posterior = math.degrees(math.atan2(patella.push[1], -patella.push[0]))
     assert above_posterior == pytest.approx(2.9, abs=0.05)
@@ -132,8 +139,55 @@ def probes(pose: np.ndarray, push: np.ndarray, lock: np.ndarray | None,
     return out
 
 
+def strain_energy(strain: np.ndarray, slack_m: np.ndarray, stiffness_n: np.ndarray,
+                  transition: np.ndarray) -> float:
+    """Blankevoort's force, k e^2 / (2 e_t) up to the transition strain and k (e - e_t / 2)
+    beyond, integrated from the slack length (J)."""
+    e = np.maximum(strain, 0.0)
+    toe = stiffness_n * e ** 3 / (6.0 * transition)
+    beyond = stiffness_n * (e * e - transition * e + transition ** 2 / 3.0) / 2.0
+    return float(np.sum(slack_m * np.where(e < transition, toe, beyond)))
+
+
+def cell_objective(config: KneeConfig, table: PoseTable, b: int, i: int, j: int,
+                   centroid: np.ndarray) -> Callable[[np.ndarray], float]:
+    """What a rest of body `b` at cell (i, j) maximises, per unit load (m): the travel
+    without ligaments; with them the load's work (its centroid's advance along the push, or
+    minus its distance from the point the load pulls toward) less the energy of the fibres
+    on it, every other point placed where the table put its body."""
+    spec = config.bodies[b]
+    params = config.params(spec, float(table.flexion_rad[i]), float(table.varus_rad[j]))
+    push = np.asarray(params.push)
+    placed = {config.reference.name: np.eye(4)}
+    placed.update({other.name: pose_from(matrix_from_quat(table.orientation_xyzw[k, i, j]),
+                                         table.position_m[k, i, j])
+                   for k, other in enumerate(config.bodies[:b])})
+    fibres = [] if config.ligaments is None else \
+        [f for f in config.ligaments.fibres if spec.name in f.bodies
+         and set(f.bodies) - {spec.name} <= set(placed)]
+    toward = None if params.load_toward is None else np.asarray(params.load_toward)
+
+    def value(pose: np.ndarray) -> float:
+        centre = pose[:3, :3] @ centroid + pose[:3, 3]
+        work = float(push @ centre) if toward is None else -float(np.linalg.norm(toward - centre))
+        if not fibres:
+            return work
+        lengths = []
+        for f in fibres:
+            at = [pose if name == spec.name else placed[name] for name in f.bodies]
+            points = np.array([q[:3, :3] @ p + q[:3, 3] for q, p in zip(at, f.points)])
+            lengths.append(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+        slack = np.array([f.slack_m for f in fibres])
+        energy = strain_energy(np.array(lengths) / slack - 1.0, slack,
+                               np.array([f.stiffness_n for f in fibres]),
+                               np.array([f.transition for f in fibres]))
+        return work - energy / float(params.load_n)
+    return value
+
+
 def rest_failures(config: KneeConfig, table: PoseTable) -> tuple[int, list[str], list[str]]:
-    """(converged cells checked, cells not touching at the resolution, cells a probe lifts)."""
+    """(converged cells checked, cells not touching at the resolution, cells a probe lifts
+    one resolution further along the push, better off by a resolution)."""
     resolution = config.settle.resolution_m
     fixed = list(config.reference.meshes)
     checked, touching, lifted = 0, [], []
@@ -154,10 +208,14 @@ def rest_failures(config: KneeConfig, table: PoseTable) -> tuple[int, list[str],
             if probe.collides(pose) or not probe.collides(ahead):
                 touching.append(where)
                 continue
+            value = cell_objective(config, table, b, int(i), int(j), centroid)
+            # without ligaments a free probe gains exactly the resolution: the bar sits a
+            # rounding below it
+            bar = value(pose) + resolution * (1.0 - 1e-9)
             centre = pose[:3, :3] @ centroid + pose[:3, 3]
             for label, moved in probes(pose, push, lock, centre):
-                if not probe.collides(pose_from(moved[:3, :3], moved[:3, 3]
-                                                + resolution * push)):
+                further = pose_from(moved[:3, :3], moved[:3, 3] + resolution * push)
+                if not probe.collides(further) and value(further) >= bar:
                     lifted.append(f'{where}: {label}')
                     break
     return checked, touching, lifted

@@ -247,7 +247,7 @@ class _Climb:
         if self.objective.smooth and promised < self.proof_lift:
             return _Outcome(0.0)                       # the proof's to find (Objective.smooth)
         floor_tol = t.finest_tol_res * s.params.resolution_m
-        tau = min(self.tol, max(t.measure * promised, floor_tol))
+        tau = min(self.tol, max(t.measure * promised / self._pressed(), floor_tol))
         width = self._narrow(tau)
         target = s.lateral(self.pose, length * direction, self.arm)
         measured = promised >= t.measurable * floor_tol
@@ -306,6 +306,14 @@ class _Climb:
         s = self.search
         return s.patches(translated(free, self.tol * s.push))
 
+    def _pressed(self) -> float:
+        """How much objective one unit of travel along Δ is worth at the current pose (at
+        least 1): the pose's contact bracket, a length along Δ, is narrowed by this much
+        more than a tolerance on the objective, so that where stretched ligaments press the
+        body on with many times its load, the bracket's uncertainty does not swamp the
+        gain a move must show (1 for the travel: its bits unchanged)."""
+        return max(1.0, self.objective.pressing(self.pose))
+
     def _gap(self) -> float:
         """How far the current pose is from touching along Δ (m): its bracket's width."""
         return self.search.depth(self.touching) - self.search.depth(self.pose)
@@ -359,7 +367,7 @@ class _Climb:
         checks_before, started = s.pair.checks, time.perf_counter()
         # the pose's own bracket is narrowed first, so a probe free at the lift has gained
         # at least the lift less a sliver: every probe that succeeds is real progress
-        self._narrow(t.probe_bracket_res * s.params.resolution_m)
+        self._narrow(t.probe_bracket_res * s.params.resolution_m / self._pressed())
         grads = self.gradients(self.floor)
         directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
         model = np.min(grads @ directions.T, axis=0) if len(grads) \
