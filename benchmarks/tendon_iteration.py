@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from kneeseat_core.errors import KneeseatError
-from kneeseat_core.geometry import pose_from
+from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_angle
 from kneeseat_core.knee import load_config
 from kneeseat_core.meshes import load_meshes, RigidBody
 from kneeseat_core.settle import settle
@@ -29,18 +29,10 @@ from kneeseat_core.table import read_table
 from kneeseat_core.typed import Pose
 
 
-def _matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def _apart(a: Pose, b: Pose) -> tuple[float, float]:
     """Origin distance (mm) and rotation angle (deg) between two poses."""
-    rel = a[:3, :3].T @ b[:3, :3]
-    cos = max(-1.0, min(1.0, 0.5 * (float(np.trace(rel)) - 1.0)))
-    return float(np.linalg.norm(a[:3, 3] - b[:3, 3])) * 1e3, math.degrees(math.acos(cos))
+    return (float(np.linalg.norm(a[:3, 3] - b[:3, 3])) * 1e3,
+            math.degrees(rotation_angle(a[:3, :3], b[:3, :3])))
 
 
 def main() -> None:
@@ -64,6 +56,8 @@ def main() -> None:
     reference = config.reference.name
     bodies = {b.name: RigidBody.from_mesh(load_meshes(list(b.meshes), config.units, quiet=True))
               for b in (config.reference, *config.bodies)}
+    between = [k for k, fib in enumerate(config.ligaments.fibres)
+               if fib.ends == frozenset(('tibia', 'patella'))]
     j = int(np.argmin(np.abs(np.degrees(table.varus_rad) - args.varus_deg)))
     print(f'{args.table.name}, varus {np.degrees(table.varus_rad[j]):g} deg')
     print('flexion | tendon on tibia (N) | tibia moved (mm, deg) | patella moved (mm, deg)'
@@ -71,15 +65,14 @@ def main() -> None:
     for flex in (float(v) for v in args.flexion_deg.split(',')):
         i = int(np.argmin(np.abs(np.degrees(table.flexion_rad) + abs(flex))))
         f, v = table.flexion_rad[i], table.varus_rad[j]
-        pose = {n: pose_from(_matrix(table.orientation_xyzw[b, i, j]), table.position_m[b, i, j])
+        pose = {n: pose_from(matrix_from_quat(table.orientation_xyzw[b, i, j]),
+                             table.position_m[b, i, j])
                 for b, n in enumerate(names)}
         start = dict(pose)
-        between = [k for k, fib in enumerate(config.ligaments.fibres)
-                   if fib.ends == frozenset(('tibia', 'patella'))]
         tension = float(config.ligaments.forces({reference: np.eye(4), **pose})[between].sum())
         rounds, rested = 0, True
         for rounds in range(1, args.rounds + 1):
-            moved, resolution_mm = 0.0, 0.0
+            moved = 0.0
             for b, other in ((tibia, patella), (patella, tibia)):
                 spec = config.bodies[b]
                 params = config.params(spec, f, v)
@@ -90,10 +83,9 @@ def main() -> None:
                 result = settle(bodies[reference], bodies[spec.name], back, params,
                                 start[spec.name], tissue)
                 rested = rested and result.converged
-                resolution_mm = params.resolution_m * 1e3
                 moved = max(moved, _apart(pose[spec.name], result.pose)[0])
                 pose[spec.name] = result.pose
-            if moved <= resolution_mm:
+            if moved <= config.settle.resolution_m * 1e3:
                 break
         t_mm, t_deg = _apart(start['tibia'], pose['tibia'])
         p_mm, p_deg = _apart(start['patella'], pose['patella'])
