@@ -26,7 +26,7 @@ __all__ = ['RigidBody', 'CollisionPair']
 _MAX_CONTACTS = 100_000
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(frozen=True, slots=True, eq=False, weakref_slot=True)
 class RigidBody:
     """A triangle mesh ready for collision queries (metres, the body's own frame)."""
 

@@ -1,0 +1,303 @@
+"""The travel along the push measured directly, by rays (Embree through `embreex`).
+
+How far a moving body can go along a direction Δ before it touches a fixed body is the
+shortest of two sets of ray hits: from each vertex of the moving body along +Δ onto the
+fixed body, and from each vertex of the fixed body along -Δ onto the moving body. One
+cast of a few hundred rays answers what python-fcl answers by ten boolean queries in a
+dichotomy. Rays from vertices do not see an edge crossing an edge: the gap that can hide
+there is bounded by `hidden_gap_m` (an edge's sagitta over the other surface's curvature),
+and python-fcl stays the judge where that matters (a start in collision, the settle's final
+pose, the referee).
+
+`RayBody` is one mesh's Embree scene, the samples of its surface in a k-d tree and a grid
+of distance bounds filled as it is asked, built once per body and process.
+`RayPair` answers for one settle: it casts only from the vertices near the other body (the
+near set) and proves the set still holds before every answer, from how far the body has
+moved since the set was drawn (`_moved`) and how far the vertices left out were from the
+other body then: a vertex at distance d from the other surface cannot touch it before some
+point of the body has moved by d. A pose that may be in collision (a ray whose first hit
+leaves the other body: a vertex inside it) is decided by python-fcl, so open sheets, whose
+rays can meet a back face through a hole, are answered as python-fcl would.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import time
+import weakref
+
+import numpy as np
+
+from kneeseat_core.typed import Floats, Ints, Pose
+from .collision import CollisionPair, RigidBody
+
+__all__ = ['RayBody', 'RayPair', 'ray_body', 'hidden_gap_m']
+
+_NO_HIT = 1e30     # Embree's miss distance is 1e37; anything beyond this is a miss
+
+
+# The surface is sampled for the near set's distances by its vertices and, on triangles
+# with a longer edge than the sample spacing, a grid of points across them; the spacing is
+# the median of the mesh's edges, at least this (every point of the surface is
+# then within one spacing of a sample).
+_SAMPLE_EDGE_M = 5e-4
+# The distances are kept on a grid of cubes at least this wide about the body (wider for a
+# body so large that the grid would hold more cubes than `_MAX_CELLS`), filled as points
+# fall in them, out to this far from its bounding box (beyond: not near).
+_CELL_M = 5e-4
+_MAX_CELLS = 8_000_000
+_PAD_M = 8e-3
+
+
+class RayBody:
+    """One body's triangles as an Embree scene (float32, about the body's bound centre, so
+    a nanometre is still resolved) and a k-d tree of points sampling its surface."""
+
+    def __init__(self, body: RigidBody) -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+        from scipy.spatial import cKDTree
+        self.origin = body.bound_centre.copy()
+        self.scene = rtcore_scene.EmbreeScene()
+        local = (body.vertices - self.origin).astype(np.float32)
+        TriangleMesh(scene=self.scene, vertices=local,
+                     indices=body.faces.astype(np.int32))
+        edges = np.linalg.norm(body.vertices[body.faces]
+                               - body.vertices[np.roll(body.faces, 1, axis=1)], axis=2)
+        self.spacing_m = max(_SAMPLE_EDGE_M, float(np.percentile(edges, 50.0)))
+        self.tree = cKDTree(_surface_samples(body.vertices, body.faces, edges.max(axis=1),
+                                             self.spacing_m))
+        self.face_normals = np.asarray(body.mesh.face_normals, dtype=np.float64)
+        self.closed = bool(body.mesh.is_watertight)
+        self.pad_m = _PAD_M + self.spacing_m
+        self.low = body.vertices.min(axis=0) - self.pad_m
+        extent = body.vertices.max(axis=0) + self.pad_m - self.low
+        self.cell_m = max(_CELL_M, float(np.prod(extent) / _MAX_CELLS) ** (1.0 / 3.0))
+        self.cell_reach_m = 0.5 * math.sqrt(3.0) * self.cell_m   # a point from its centre
+        self.shape = tuple(int(n) for n in np.ceil(extent / self.cell_m))
+        # per cube: a lower bound on the distance from any point in it to the surface
+        # (m; NaN: not known yet)
+        self.cells = np.full(int(np.prod(self.shape)), np.nan, dtype=np.float32)
+
+    def first_hits(self, origins: Floats, direction: Floats) -> tuple[Floats, Ints]:
+        """The first hit of a ray from each of `origins` (k, 3), body frame, along the unit
+        `direction` (3,): distances (k,) m (inf: no hit) and triangle indices (k,) (-1)."""
+        if len(origins) == 0:
+            return np.zeros(0), np.zeros(0, dtype=np.int64)
+        o = (origins - self.origin).astype(np.float32)
+        d = np.broadcast_to(direction.astype(np.float32), o.shape)
+        out = self.scene.run(o, np.ascontiguousarray(d), output=1)
+        dist = out['tfar'].astype(np.float64)
+        prim = out['primID'].astype(np.int64)
+        dist[prim < 0] = math.inf
+        dist[dist > _NO_HIT] = math.inf
+        return dist, prim
+
+    def near(self, points: Floats, within: float) -> tuple[Ints, Floats]:
+        """The indices of `points` (k, 3), body frame, that may lie within `within` m of
+        the surface, and a lower bound on each one's distance from it (m): from the cube
+        it lies in, the distance of the cube's centre to the nearest sample less the
+        samples' spacing and the cube's half diagonal."""
+        if within > self.pad_m - self.spacing_m - self.cell_reach_m:
+            raise ValueError(f'a near set {within} m wide is wider than the distance grid')
+        ijk = np.floor((points - self.low) / self.cell_m).astype(np.int64)
+        shape = np.array(self.shape)
+        inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+        idx = np.flatnonzero(inside)
+        flat = np.ravel_multi_index(ijk[idx].T, self.shape)
+        bound = self.cells[flat]
+        unknown = np.isnan(bound)
+        if unknown.any():
+            cells = np.unique(flat[unknown])
+            centres = (np.stack(np.unravel_index(cells, self.shape), axis=1) + 0.5) \
+                * self.cell_m + self.low
+            dist, _ = self.tree.query(centres, k=1,
+                                      distance_upper_bound=self.pad_m)
+            self.cells[cells] = np.maximum(dist - self.spacing_m - self.cell_reach_m, 0.0)
+            bound = self.cells[flat]
+        near = bound < within
+        return idx[near], bound[near].astype(np.float64)
+
+
+def _surface_samples(vertices: Floats, faces: Ints, longest: Floats,
+                     spacing: float) -> Floats:
+    """The vertices, and on each triangle whose longest edge exceeds `spacing` the corners
+    of its division into n x n similar triangles with edges no longer than `spacing`."""
+    out = [vertices]
+    parts = np.ceil(longest / spacing).astype(np.int64)
+    for n in np.unique(parts[parts > 1]):
+        tri = vertices[faces[parts == n]]                   # (k, 3, 3)
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing='ij')
+        keep = (i + j) <= n
+        a, b = (i[keep] / n)[:, None], (j[keep] / n)[:, None]   # (m, 1)
+        pts = tri[:, None, 0] + a[None] * (tri[:, None, 1] - tri[:, None, 0]) \
+            + b[None] * (tri[:, None, 2] - tri[:, None, 0])
+        out.append(pts.reshape(-1, 3))
+    return np.concatenate(out)
+
+
+_RAY_BODIES: weakref.WeakKeyDictionary[RigidBody, RayBody] = weakref.WeakKeyDictionary()
+
+
+def ray_body(body: RigidBody) -> RayBody:
+    """The body's `RayBody`, built on first use and kept while the body lives."""
+    found = _RAY_BODIES.get(body)
+    if found is None:
+        found = _RAY_BODIES[body] = RayBody(body)
+    return found
+
+
+def hidden_gap_m(a: RigidBody, b: RigidBody) -> float:
+    """How wide a gap vertex rays can miss between `a` and `b` (m), on smooth surfaces.
+
+    Where an edge of one mesh first touches an edge of the other, no vertex touches yet;
+    the nearest vertices stand off by at most half an edge times the angle the surface
+    turns across that edge. Returned: that bound's 99th percentile over the edges of both
+    meshes (a crease, where a knee's surfaces do not meet, would dominate a maximum).
+    """
+    bounds = []
+    for body in (a, b):
+        mesh = body.mesh
+        edges = mesh.face_adjacency_edges
+        length = np.linalg.norm(body.vertices[edges[:, 0]] - body.vertices[edges[:, 1]],
+                                axis=1)
+        bounds.append(0.5 * length * np.asarray(mesh.face_adjacency_angles))
+    every = np.concatenate(bounds)
+    return float(np.percentile(every, 99.0)) if len(every) else 0.0
+
+
+@dataclass(slots=True, eq=False)
+class _NearSet:
+    """The vertices of each body near the other where the set was drawn (`ref`), each with
+    a lower bound on its distance from the other body then (m)."""
+
+    ref: Pose
+    moving: Floats           # (k, 3) moving frame
+    moving_bound: Floats     # (k,)
+    fixed: Floats            # (j, 3) fixed frame
+    fixed_bound: Floats      # (j,)
+
+
+# The last near set of each pair of bodies, kept while both live: the settles of a table's
+# neighbouring cells start where the last one ended.
+_NEAR_SETS: weakref.WeakKeyDictionary[RigidBody, weakref.WeakKeyDictionary[RigidBody, _NearSet]] \
+    = weakref.WeakKeyDictionary()
+
+
+@dataclass(slots=True, eq=False)
+class RayPair:
+    """The travel along Δ of one settle's moving body onto its fixed body, by rays from the
+    near set (module docstring).
+
+    The near set holds the vertices of each body within `margin_m` of the other where it
+    was drawn, each with a lower bound on that distance. A cast at a pose the body reached
+    since, by moving each of its points at most δ (`_moved`), uses only the vertices whose
+    bound less δ is inside a window μ: no other vertex can touch before the body travels μ
+    along Δ, so a first hit within μ is the travel; beyond it, the window doubles. A ray
+    whose first hit leaves the other body starts inside it: between closed meshes the pose
+    is in collision; where either is open (a ray may meet a back face through a hole)
+    python-fcl decides. The set is drawn again where the body has moved by half the
+    margin since, and kept for the next settle of the same pair.
+    """
+
+    pair: CollisionPair
+    push: Floats                 # (3,) unit Δ, fixed frame
+    margin_m: float              # the near set: vertices nearer than this to the other body
+    window_m: float              # the first cast's window μ (m of travel)
+    casts: int = 0               # casts made
+    rays: int = 0                # rays cast
+    draws: int = 0               # near sets drawn
+    ray_s: float = 0.0           # wall time of the casts and the near sets
+    _fixed: RayBody = field(init=False, repr=False)
+    _moving: RayBody = field(init=False, repr=False)
+    _closed: bool = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._fixed = ray_body(self.pair.fixed)
+        self._moving = ray_body(self.pair.moving)
+        self._closed = self._fixed.closed and self._moving.closed
+
+    # ---- the near set -------------------------------------------------------------------
+    @property
+    def _near(self) -> _NearSet | None:
+        found = _NEAR_SETS.get(self.pair.moving)
+        return None if found is None else found.get(self.pair.fixed)
+
+    def _draw(self, pose: Pose) -> _NearSet:
+        """Draw the near set at `pose` (the vertices left out are at least the margin from
+        the other body)."""
+        started = time.perf_counter()
+        rot, t = pose[:3, :3], pose[:3, 3]
+        moving = self.pair.moving.vertices
+        keep_m, bound_m = self._fixed.near(moving @ rot.T + t, self.margin_m)
+        fixed = self.pair.fixed.vertices
+        keep_f, bound_f = self._moving.near((fixed - t) @ rot, self.margin_m)
+        near = _NearSet(pose.copy(), moving[keep_m], bound_m, fixed[keep_f], bound_f)
+        _NEAR_SETS.setdefault(self.pair.moving, weakref.WeakKeyDictionary())[
+            self.pair.fixed] = near
+        self.draws += 1
+        self.ray_s += time.perf_counter() - started
+        return near
+
+    def _moved(self, near: _NearSet | None, pose: Pose) -> float:
+        """How far any point of the moving body may have moved since `near` was drawn (its
+        centroid's displacement plus the turn times the body's reach; inf: none drawn)."""
+        if near is None:
+            return math.inf
+        ref, moving = near.ref, self.pair.moving
+        rel = pose[:3, :3] @ ref[:3, :3].T
+        cos = max(-1.0, min(1.0, 0.5 * (float(np.trace(rel)) - 1.0)))
+        a = (pose[:3, :3] - ref[:3, :3]) @ moving.centroid + pose[:3, 3] - ref[:3, 3]
+        return math.sqrt(float(a @ a)) + math.acos(cos) * moving.reach
+
+    # ---- casting --------------------------------------------------------------------------
+    def _cast(self, near: _NearSet, pose: Pose, window: float,
+              moved: float) -> tuple[float, bool]:
+        """One cast at `pose` from the vertices of `near` that may be within `window` of
+        the other body (their bound less `moved`): the travel to the first hit that enters
+        the other body, and whether some ray's first hit leaves it instead."""
+        started = time.perf_counter()
+        rot, t = pose[:3, :3], pose[:3, 3]
+        up = near.moving[near.moving_bound < window + moved] @ rot.T + t
+        d1, p1 = self._fixed.first_hits(up, self.push)
+        down_dir = -(rot.T @ self.push)
+        down = (near.fixed[near.fixed_bound < window + moved] - t) @ rot
+        d2, p2 = self._moving.first_hits(down, down_dir)
+        leaves1 = (p1 >= 0) & (self._fixed.face_normals[np.maximum(p1, 0)] @ self.push > 0.0)
+        leaves2 = (p2 >= 0) & (self._moving.face_normals[np.maximum(p2, 0)] @ down_dir > 0.0)
+        travel = min(float(np.min(d1[~leaves1], initial=math.inf)),
+                     float(np.min(d2[~leaves2], initial=math.inf)))
+        self.casts += 1
+        self.rays += len(up) + len(down)
+        self.ray_s += time.perf_counter() - started
+        return travel, bool(leaves1.any() or leaves2.any())
+
+    def travel_from(self, pose: Pose, limit_m: float) -> float | None:
+        """The travel along Δ from `pose` to the first contact (inf: none within
+        `limit_m`), or None when `pose` is itself in collision."""
+        base, done, window, asked = pose, 0.0, self.window_m, False
+        near = self._near
+        while True:
+            moved = self._moved(near, base)
+            if near is None or moved > 0.5 * self.margin_m:   # loose: draw it here
+                near = self._draw(base)
+                moved = 0.0
+            room = self.margin_m - moved       # no vertex left out touches within it
+            window = min(window, room)
+            travel, inside = self._cast(near, base, window, moved)
+            if inside and not asked:
+                asked = True
+                if done == 0.0 and (self._closed or self.pair.collides(base)):
+                    return None
+            if travel <= window:
+                return done + travel
+            if window < room:                  # nothing within the window: widen it
+                window *= 2.0
+                continue
+            if done + room > limit_m:
+                return math.inf
+            # nothing touches within the room: go on from there
+            base = base.copy()
+            base[:3, 3] += room * self.push
+            done += room
+            window = self.window_m
