@@ -52,8 +52,10 @@ from __future__ import annotations
 import numpy as np
 
 from kneeseat_core.errors import NoContactError, SettleError
+from kneeseat_core.geometry import unit
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.meshes import CollisionPair, RigidBody
+from kneeseat_core.meshes.rays import RayPair
 from kneeseat_core.params import Method, SettleParams
 from kneeseat_core.typed import Pose
 from .climb import run_climb
@@ -90,8 +92,13 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
         raise SettleError('ligaments act on the moving body but no load is given; give the '
                           'load on the push in newtons (load_n)')
     start = np.asarray(start, dtype=np.float64)
-    search = Search(CollisionPair(fixed, moving), start, params,
-                    start if anchor is None else np.asarray(anchor, dtype=np.float64))
+    pair = CollisionPair(fixed, moving)
+    rays = RayPair(pair, unit(np.asarray(params.push, dtype=float), 'push direction'),
+                   TUNING.near_margin_steps * params.step_m,
+                   TUNING.ray_window_res * params.resolution_m) \
+        if params.method == 'default' and params.travel == 'rays' else None
+    search = Search(pair, start, params,
+                    start if anchor is None else np.asarray(anchor, dtype=np.float64), rays)
     pose = search.back_out(start)
     limit = search.travel_limit(pose)
     tol = params.resolution_m if params.method == 'patent' \

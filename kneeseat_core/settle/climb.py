@@ -364,7 +364,7 @@ class _Climb:
         the climb ended), None at rest."""
         s, t = self.search, self.tuning
         lift = self.proof_lift
-        checks_before, started = s.pair.checks, time.perf_counter()
+        checks_before, started = s.queries(), time.perf_counter()
         # the pose's own bracket is narrowed first, so a probe free at the lift has gained
         # at least the lift less a sliver: every probe that succeeds is real progress
         self._narrow(t.probe_bracket_res * s.params.resolution_m / self._pressed())
@@ -390,7 +390,7 @@ class _Climb:
                         continue
                     return self._follow(d, length, lift)
         finally:
-            self.proof_checks += s.pair.checks - checks_before
+            self.proof_checks += s.queries() - checks_before
             self.proof_s += time.perf_counter() - started
         return None
 
@@ -458,8 +458,9 @@ def run_climb(search: Search, bracket: Bracket, tissue: Tissue | None = None,
             climb.step, end = outcome.step, outcome.end
     status, reason = end or (
         Status.CAP, f'iteration cap ({p.max_iterations}) reached before rest was verified')
-    return search.result(climb.pose, status, reason, climb.floor,
-                         proof_checks=climb.proof_checks, proof_s=climb.proof_s)
+    pose, back = search.judge(climb.pose, climb.tol)
+    return search.result(pose, status, reason, climb.floor, proof_checks=climb.proof_checks,
+                         proof_s=climb.proof_s, judged_back_m=back)
 
 
 def _at_rest(search: Search, climb: _Climb) -> End:

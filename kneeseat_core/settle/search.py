@@ -18,6 +18,7 @@ import numpy as np
 from kneeseat_core.errors import SettleError
 from kneeseat_core.geometry import rotation_about, unit
 from kneeseat_core.meshes import CollisionPair
+from kneeseat_core.meshes.rays import RayPair
 from kneeseat_core.params import SettleParams
 from kneeseat_core.status import AT_REST, Status
 from kneeseat_core.typed import Floats, Pose
@@ -66,8 +67,11 @@ class SettleResult:
     fcl_s: float                # part of elapsed_s spent inside python-fcl (s)
     backed_out_m: float = 0.0   # distance the start was backed out along -Δ
     status: int = Status.REST   # `Status` code
-    proof_checks: int = 0       # collision queries spent proving rest (default method)
+    proof_checks: int = 0       # queries (fcl and ray casts) spent proving rest (default)
     proof_s: float = 0.0        # wall time of those proofs (s)
+    ray_casts: int = 0          # casts of the travel by rays (each from the near set)
+    rays: int = 0               # rays in those casts
+    judged_back_m: float = 0.0  # how far python-fcl backed the final pose out (rays missed)
 
     @property
     def constrained(self) -> bool:
@@ -107,6 +111,7 @@ class Search:
     start: Pose
     params: SettleParams
     anchor: Pose                        # the envelope is measured from here
+    rays: RayPair | None = None         # the travel by rays (None: python-fcl queries only)
     push: Floats = field(init=False)
     e1: Floats = field(init=False)
     e2: Floats = field(init=False)
@@ -231,8 +236,25 @@ class Search:
 
     # ---- collision ----------------------------------------------------------------------
     def collides(self, pose: Pose) -> bool:
-        """Boolean collision query."""
+        """Boolean collision query (python-fcl; the rays measure travels, not booleans)."""
         return self.pair.collides(pose)
+
+    def ray_travel(self, pose: Pose, limit_m: float | None = None) -> float | None:
+        """The travel along Δ from `pose` to exact contact by rays (one cast from the near
+        set instead of a dichotomy), negative when python-fcl finds `pose` itself in
+        collision (then found from behind it). None: no contact within `limit_m` (default:
+        the travel limit), or a pose buried deeper than that."""
+        assert self.rays is not None
+        limit = self.travel_limit(pose) if limit_m is None else limit_m
+        back = 0.0
+        while True:
+            base = pose if back == 0.0 else translated(pose, -back * self.push)
+            travel = self.rays.travel_from(base, limit + back)
+            if travel is not None:
+                return travel - back if math.isfinite(travel) else None
+            back = max(2.0 * back, self.params.resolution_m)
+            if back > limit:
+                return None
 
     def contacts(self, pose: Pose) -> Contacts:
         """The colliding reference triangles at `pose`: centres and normals."""
@@ -250,15 +272,18 @@ class Search:
         keep = contacts.normals @ motion < 0.0
         return Contacts(contacts.points[keep], contacts.normals[keep])
 
-    def bisect(self, move: Callable[[float], Pose], tol_fraction: float) -> tuple[float, float]:
-        """Dichotomy on a motion `move(s)`, s in [0, 1]: free at 0, colliding at 1.
+    def bisect(self, move: Callable[[float], Pose], tol_fraction: float,
+               collides: Callable[[Pose], bool] | None = None) -> tuple[float, float]:
+        """Dichotomy on a motion `move(s)`, s in [0, 1]: free at 0, colliding at 1, by
+        `collides` (default: `self.collides`).
 
         Returns (free_s, colliding_s) with colliding_s - free_s <= tol_fraction.
         """
+        query = self.collides if collides is None else collides
         lo, hi = 0.0, 1.0
         while hi - lo > tol_fraction:
             mid = 0.5 * (lo + hi)
-            if self.collides(move(mid)):
+            if query(move(mid)):
                 hi = mid
             else:
                 lo = mid
@@ -266,7 +291,13 @@ class Search:
 
     def bisect_along(self, pose: Pose, lo: float, hi: float, tol_m: float) -> tuple[float, float]:
         """Dichotomy on the travel along Δ from `pose`: free at `lo`, touching at `hi` (m);
-        returns (free, touching) at most `tol_m` apart."""
+        returns (free, touching) at most `tol_m` apart (by rays: one cast, unless the rays
+        see no contact where python-fcl did)."""
+        if self.rays is not None and hi - lo > tol_m:
+            travel = self.ray_travel(translated(pose, lo * self.push), hi - lo + tol_m)
+            if travel is not None and 0.0 <= travel <= hi - lo:
+                at = lo + travel
+                return max(lo, at - 0.5 * tol_m), min(hi, at + 0.5 * tol_m)
         while hi - lo > tol_m:
             mid = 0.5 * (lo + hi)
             if self.collides(translated(pose, mid * self.push)):
@@ -276,16 +307,17 @@ class Search:
         return lo, hi
 
     def back_out(self, pose: Pose) -> Pose:
-        """Move a start in collision back along -Δ until free (recorded in backed_out_m)."""
-        if not self.collides(pose):
+        """Move a start in collision back along -Δ until free (recorded in backed_out_m);
+        python-fcl decides (a start may be buried where no vertex ray sees it)."""
+        if not self.pair.collides(pose):
             return pose
         limit = self.travel_limit(pose)
         dist = self.params.step_m
         while dist <= 2.0 * limit:
             cand = translated(pose, -dist * self.push)
-            if not self.collides(cand):
+            if not self.pair.collides(cand):
                 lo, _ = self.bisect(lambda s: translated(pose, -dist * (1.0 - s) * self.push),
-                                    self.params.resolution_m / dist)
+                                    self.params.resolution_m / dist, self.pair.collides)
                 self.backed_out_m = dist * (1.0 - lo)
                 log.info('start pose was in collision: backed out %.3f mm along -push',
                          self.backed_out_m * 1e3)
@@ -303,6 +335,8 @@ class Search:
         """
         step = self.params.step_m if step_m is None else step_m
         limit = self.travel_limit(pose) if limit_m is None else limit_m
+        if self.rays is not None:
+            return self._ray_bracket(pose, tol_m, limit)
         travelled = 0.0
         while travelled <= limit:
             nxt = translated(pose, step * self.push)
@@ -323,6 +357,8 @@ class Search:
         Probes just past the guess, then just short of it, widening by doubling until the
         contact is bracketed, then bisects to `tol_m`. None: no contact within the travel
         limit (or a body buried beyond it)."""
+        if self.rays is not None:
+            return self._ray_bracket(pose, tol_m)
         lo: float | None = 0.0 if free_at_start else None     # free here
         hi: float | None = None                               # touching here
         limit = self.travel_limit(pose)
@@ -346,10 +382,45 @@ class Search:
         lo, hi = self.bisect_along(pose, lo, hi, tol_m)
         return Bracket(translated(pose, lo * self.push), translated(pose, hi * self.push))
 
+    def queries(self) -> int:
+        """Queries answered so far: python-fcl's and the casts of the travel by rays."""
+        return self.pair.checks + (self.rays.casts if self.rays is not None else 0)
+
+    def judge(self, pose: Pose, tol_m: float) -> tuple[Pose, float]:
+        """python-fcl judges the end pose of a climb by rays: a pose it finds in collision
+        (an edge crossing an edge where no vertex ray sees it) is backed out along -Δ until
+        free, to `tol_m`. Returns the pose and how far it was backed out (m)."""
+        if self.rays is None or not self.pair.collides(pose):
+            return pose, 0.0
+        dist, limit = tol_m, self.travel_limit(pose)
+        while self.pair.collides(translated(pose, -dist * self.push)):
+            dist *= 2.0
+            if dist > limit:
+                raise SettleError('python-fcl finds the end pose buried; no free pose behind '
+                                  'it along the push')
+        lo, _ = self.bisect(lambda s: translated(pose, -dist * (1.0 - s) * self.push),
+                            tol_m / dist, self.pair.collides)
+        back = dist * (1.0 - lo)
+        log.debug('end pose in collision for python-fcl: backed out %.4f mm', back * 1e3)
+        return translated(pose, -back * self.push), back
+
+    def _ray_bracket(self, pose: Pose, tol_m: float,
+                     limit_m: float | None = None) -> Bracket | None:
+        """Exact contact along Δ from `pose` by rays: a bracket `tol_m` wide about it."""
+        travel = self.ray_travel(pose, limit_m)
+        if travel is None:
+            return None
+        return Bracket(translated(pose, (travel - 0.5 * tol_m) * self.push),
+                       translated(pose, (travel + 0.5 * tol_m) * self.push))
+
     def result(self, pose: Pose, status: int, reason: str, contacts: Contacts,
-               proof_checks: int = 0, proof_s: float = 0.0) -> SettleResult:
+               proof_checks: int = 0, proof_s: float = 0.0,
+               judged_back_m: float = 0.0) -> SettleResult:
         """Package the end of a settle (`status`: a `Status` code)."""
+        rays = self.rays
         return SettleResult(pose, status in AT_REST, reason,
                             self.iterations, self.pair.checks, contacts,
                             time.perf_counter() - self.started, self.pair.fcl_s,
-                            self.backed_out_m, status, proof_checks, proof_s)
+                            self.backed_out_m, status, proof_checks, proof_s,
+                            rays.casts if rays else 0, rays.rays if rays else 0,
+                            judged_back_m)

@@ -18,6 +18,12 @@ __all__ = ['SettleTuning', 'TUNING']
 class SettleTuning:
     """The climb's constants (module docstring).
 
+    Travel by rays:
+        near_margin_steps: the near set holds the vertices within this many translation
+            steps of the other body; it is drawn again when the body has moved by half of
+            it (a cost, not a guess: no answer depends on it).
+        ray_window_res: a cast uses first the vertices that may touch within this many
+            resolutions of travel, then twice as many, and so on.
     Exact contact:
         contact_tol_res: exact contact along the push is found to this (D3).
         sharpen: before rest is probed, the contact bracket is narrowed to this share of
@@ -57,6 +63,8 @@ class SettleTuning:
             this many finest moves.
     """
 
+    near_margin_steps: float = 4.0
+    ray_window_res: float = 4.0
     contact_tol_res: float = 0.25
     sharpen: float = 0.25
     promise: float = 0.25
