@@ -72,7 +72,8 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
         'built': datetime.now(timezone.utc).isoformat(timespec='seconds'),
         'summary': {'cells': result.cells, 'converged': int(result.converged.sum()),
                     'wall_s': round(result.wall_s, 3),
-                    'collision_checks': int(result.collision_checks)},
+                    'collision_checks': int(result.collision_checks),
+                    **({'ray_casts': int(result.ray_casts)} if result.ray_casts else {})},
         'failures': list(result.failures),
         # how each cell's settle ended (codes: kneeseat_core.status.Status)
         'cells': {'status_names': {str(k): v for k, v in STATUS_NAMES.items()},
@@ -146,7 +147,9 @@ def summary_line(table: PoseTable, out: Path) -> str:
                          for i, name in enumerate(table.bodies))
     line = (f'{out}: {s["cells"]} cells, {100 * conv:.1f}% converged ({per_body}), '
             f'{s["wall_s"]:.1f} s wall, {s["cells"] / max(s["wall_s"], 1e-9):.1f} cells/s, '
-            f'{s["collision_checks"] / max(s["cells"], 1):.0f} collision checks per cell')
+            f'{s["collision_checks"] / max(s["cells"], 1):.0f} collision checks per cell'
+            + (f', {s["ray_casts"] / max(s["cells"], 1):.0f} ray casts per cell'
+               if s.get('ray_casts') else ''))
     cont = table.metadata.get('continuity')
     if isinstance(cont, dict):
         over = sum(sum(b['pairs_over_bound'].values()) for b in cont['bodies'].values())

@@ -85,6 +85,7 @@ class ChainResult:
     reasons: tuple[str, ...]
     elapsed_s: float
     backed_out_m: Floats      # (n,) how far each kept settle backed its start out
+    ray_casts: int = 0        # casts of the travel by rays (settle parameter `travel`)
 
 
 def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
@@ -112,7 +113,7 @@ def run_chain(job: ChainJob) -> ChainResult:
     status = np.full(n, Status.FAILED, dtype=np.int8)
     backed = np.zeros(n)
     reasons: list[str] = []
-    checks = 0
+    checks = casts = 0
     previous, previous_attitude = job.start, job.start_attitude
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
@@ -125,6 +126,7 @@ def run_chain(job: ChainJob) -> ChainResult:
                 retry = settle(fixed, moving, cold_start(attitude, params), params, anchor,
                                tissue)
                 checks += result.collision_checks
+                casts += result.ray_casts
                 result = retry if retry.converged else result
         except (NoContactError, SettleError) as err:
             poses[i] = start
@@ -136,8 +138,9 @@ def run_chain(job: ChainJob) -> ChainResult:
         status[i] = result.status
         backed[i] = result.backed_out_m
         checks += result.collision_checks
+        casts += result.ray_casts
         reasons.append(result.reason)
         if result.converged:   # a failed cell never seeds its neighbours
             previous, previous_attitude = result.pose, attitude
     return ChainResult(job.body, job.cells, poses, converged, iterations, status, checks,
-                       tuple(reasons), time.perf_counter() - started, backed)
+                       tuple(reasons), time.perf_counter() - started, backed, casts)

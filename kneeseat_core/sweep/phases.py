@@ -66,6 +66,7 @@ class SweepResult:
     anchor_cell: tuple[int, int]    # (flexion, varus) index the anchors belong to
     backed_out_m: Floats            # (B, F, V) how far each cell's start was backed out
     failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
+    ray_casts: int = 0              # casts of the travel by rays (settle parameter `travel`)
 
     @property
     def cells(self) -> int:
@@ -119,6 +120,7 @@ class _Sweep:
         self.backed = np.zeros((nb, nf, nv))
         self.failures: list[str] = []
         self.checks = 0
+        self.casts = 0
         self.centre_attitudes = [config.attitude(spec, flex[self.f0], var[self.v0])
                                  for spec in config.bodies]
         self.anchors = np.array([neutral_pose(a0) for a0 in self.centre_attitudes])
@@ -182,6 +184,7 @@ class _Sweep:
                         f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}: '
                         f'{res.reasons[k]}')
             self.checks += res.collision_checks
+            self.casts += res.ray_casts
             if self.progress:
                 self.progress(len(res.cells))
 
@@ -247,4 +250,4 @@ class _Sweep:
                            quat_from_matrix(self.poses[..., :3, :3]), self.converged,
                            self.iterations, self.status, self.checks, wall_s,
                            self.scene.mesh_sha256, self.anchors, (self.f0, self.v0),
-                           self.backed, tuple(self.failures))
+                           self.backed, tuple(self.failures), self.casts)

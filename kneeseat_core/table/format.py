@@ -20,7 +20,8 @@ was measured from. Provenance, shown when present:
   kneeseat_version, built (ISO 8601 UTC), arrays_sha256 (checked on load), name,
   config (the knee config as read, with a "resolved" part: absolute mesh paths, settle
   parameters, grid in degrees), settle (the settle parameters), summary ({"cells",
-  "converged", "wall_s", "collision_checks"}), failures (the first non-converged reasons),
+  "converged", "wall_s", "collision_checks"}, python-fcl's queries, and "ray_casts" when
+  the settle measured the travel by rays), failures (the first non-converged reasons),
   cells ({"status_names", "status"}: each cell's `kneeseat_core.status.Status` code),
   continuity (`kneeseat_core.sweep.continuity`), backed_out (per body: starts in collision).
 
