@@ -9,7 +9,9 @@ prints the median / min / max wall time per settle, iterations, collision checks
 share of the time spent inside python-fcl, and converged/reason; with both methods, how
 far apart their end poses are (insert centroid distance in mm, rotation angle in deg).
 Target: default median <= 50 ms per settle on this machine; the proof of rest's share is
-printed too.
+printed too. `--travel both` times the default method's travel by python-fcl dichotomy
+against the travel by rays in alternating pairs (the ratio of the medians is the figure;
+the rays' scenes are built before the timing) and says how far apart the two end poses are.
 """
 from __future__ import annotations
 
@@ -53,6 +55,28 @@ def run_method(fixed: RigidBody, moving: RigidBody, start: np.ndarray, method: s
     return results, cpu_ms
 
 
+def compare_travel(fixed: RigidBody, moving: RigidBody, start: np.ndarray, runs: int,
+                   max_iterations: int) -> None:
+    """The default method with travel by python-fcl and by rays, in alternating pairs."""
+    params = {t: SettleParams(push=PUSH, travel=t,  # type: ignore[arg-type]
+                              max_iterations=max_iterations) for t in ('fcl', 'rays')}
+    settle(fixed, moving, start, params['rays'])          # builds the rays' scenes
+    results: dict[str, list[SettleResult]] = {'fcl': [], 'rays': []}
+    for _ in range(runs):
+        for travel in ('fcl', 'rays'):
+            results[travel].append(settle(fixed, moving, start, params[travel]))
+    ms = {t: statistics.median(r.elapsed_s * 1e3 for r in rs) for t, rs in results.items()}
+    for travel, rs in results.items():
+        last = rs[-1]
+        print(f'travel {travel}: median {ms[travel]:.1f} ms over {runs} runs; '
+              f'{last.collision_checks} python-fcl queries, {last.ray_casts} ray casts '
+              f'({last.rays} rays), converged {last.converged}')
+    mm, deg = pose_distance(results['fcl'][-1].pose, results['rays'][-1].pose,
+                            moving.centroid)
+    print(f'  rays / fcl wall: x{ms["rays"] / ms["fcl"]:.2f}; end poses {mm:.4f} mm, '
+          f'{deg:.4f} deg apart')
+
+
 def report(method: str, results: list[SettleResult], cpu_ms: list[float]) -> None:
     ms = [r.elapsed_s * 1e3 for r in results]
     share = [r.fcl_s / r.elapsed_s for r in results]
@@ -89,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--runs', type=int, default=11, help='settles per method (11)')
     parser.add_argument('--method', choices=('default', 'patent', 'both'), default='both')
     parser.add_argument('--max-iterations', type=int, default=500)
+    parser.add_argument('--travel', choices=('fcl', 'both'), default='fcl',
+                        help='both: also time the travel by rays against python-fcl')
     parser.add_argument('--data', type=Path, default=DEFAULT_DATA,
                         help='folder with femoral_component.stl and tibial_insert.stl')
     args = parser.parse_args(argv)
@@ -116,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
             median = statistics.median(r.elapsed_s * 1e3 for r in results)
             verdict = 'met' if median <= TARGET_MS else 'NOT met'
             print(f'  target default median <= {TARGET_MS:.0f} ms: {verdict}')
+    if args.travel == 'both':
+        compare_travel(femoral, insert, start, args.runs, args.max_iterations)
     if len(ends) == 2:
         mm, deg = pose_distance(ends['default'], ends['patent'], insert.centroid)
         rise = (ends['default'][1, 3] - ends['patent'][1, 3]) * 1e3
