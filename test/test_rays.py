@@ -19,8 +19,8 @@ import pytest
 
 from kneeseat_core.errors import SettleError
 from kneeseat_core.geometry import pose_from, rotation_about
-from kneeseat_core.meshes import CollisionPair, load_mesh, load_meshes, RigidBody
-from kneeseat_core.meshes.rays import hidden_gap_m, RayPair
+from kneeseat_core.meshes import (CollisionPair, hidden_gap_m, load_mesh, load_meshes,
+                                  RayPair, RigidBody)
 from kneeseat_core.settle import settle, SettleParams
 import settle_cases as sc
 

@@ -54,8 +54,7 @@ import numpy as np
 from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import unit
 from kneeseat_core.ligaments import Tissue
-from kneeseat_core.meshes import CollisionPair, RigidBody
-from kneeseat_core.meshes.rays import RayPair
+from kneeseat_core.meshes import CollisionPair, RayPair, RigidBody
 from kneeseat_core.params import Method, SettleParams
 from kneeseat_core.typed import Pose
 from .climb import run_climb

@@ -17,8 +17,7 @@ import numpy as np
 
 from kneeseat_core.errors import SettleError
 from kneeseat_core.geometry import rotation_about, unit
-from kneeseat_core.meshes import CollisionPair
-from kneeseat_core.meshes.rays import RayPair
+from kneeseat_core.meshes import CollisionPair, RayPair
 from kneeseat_core.params import SettleParams
 from kneeseat_core.status import AT_REST, Status
 from kneeseat_core.typed import Floats, Pose
