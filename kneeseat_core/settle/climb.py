@@ -458,7 +458,7 @@ def run_climb(search: Search, bracket: Bracket, tissue: Tissue | None = None,
             climb.step, end = outcome.step, outcome.end
     status, reason = end or (
         Status.CAP, f'iteration cap ({p.max_iterations}) reached before rest was verified')
-    pose, back = search.judge(climb.pose, climb.tol)
+    pose, back = search.judge(climb.pose, climb.tuning.finest_tol_res * p.resolution_m)
     return search.result(pose, status, reason, climb.floor, proof_checks=climb.proof_checks,
                          proof_s=climb.proof_s, judged_back_m=back)
 
