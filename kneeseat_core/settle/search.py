@@ -238,17 +238,19 @@ class Search:
         """Boolean collision query (python-fcl; the rays measure travels, not booleans)."""
         return self.pair.collides(pose)
 
-    def ray_travel(self, pose: Pose, limit_m: float | None = None) -> float | None:
+    def ray_travel(self, pose: Pose, limit_m: float | None = None,
+                   known_free: bool = False) -> float | None:
         """The travel along Δ from `pose` to exact contact by rays (one cast from the near
         set instead of a dichotomy), negative when python-fcl finds `pose` itself in
-        collision (then found from behind it). None: no contact within `limit_m` (default:
-        the travel limit), or a pose buried deeper than that."""
+        collision (then found from behind it; `known_free`: the caller knows it is not).
+        None: no contact within `limit_m` (default: the travel limit), or a pose buried
+        deeper than that."""
         assert self.rays is not None
         limit = self.travel_limit(pose) if limit_m is None else limit_m
         back = 0.0
         while True:
             base = pose if back == 0.0 else translated(pose, -back * self.push)
-            travel = self.rays.travel_from(base, limit + back)
+            travel = self.rays.travel_from(base, limit + back, known_free and back == 0.0)
             if travel is not None:
                 return travel - back if math.isfinite(travel) else None
             back = max(2.0 * back, self.params.resolution_m)
@@ -293,7 +295,8 @@ class Search:
         returns (free, touching) at most `tol_m` apart (by rays: one cast, unless the rays
         see no contact where python-fcl did)."""
         if self.rays is not None and hi - lo > tol_m:
-            travel = self.ray_travel(translated(pose, lo * self.push), hi - lo + tol_m)
+            travel = self.ray_travel(translated(pose, lo * self.push), hi - lo + tol_m,
+                                     known_free=True)
             if travel is not None and 0.0 <= travel <= hi - lo:
                 at = lo + travel
                 return max(lo, at - 0.5 * tol_m), min(hi, at + 0.5 * tol_m)
@@ -335,7 +338,7 @@ class Search:
         step = self.params.step_m if step_m is None else step_m
         limit = self.travel_limit(pose) if limit_m is None else limit_m
         if self.rays is not None:
-            return self._ray_bracket(pose, tol_m, limit)
+            return self._ray_bracket(pose, tol_m, limit, known_free=True)
         travelled = 0.0
         while travelled <= limit:
             nxt = translated(pose, step * self.push)
@@ -357,7 +360,7 @@ class Search:
         contact is bracketed, then bisects to `tol_m`. None: no contact within the travel
         limit (or a body buried beyond it)."""
         if self.rays is not None:
-            return self._ray_bracket(pose, tol_m)
+            return self._ray_bracket(pose, tol_m, known_free=free_at_start)
         lo: float | None = 0.0 if free_at_start else None     # free here
         hi: float | None = None                               # touching here
         limit = self.travel_limit(pose)
@@ -403,10 +406,10 @@ class Search:
         log.debug('end pose in collision for python-fcl: backed out %.4f mm', back * 1e3)
         return translated(pose, -back * self.push), back
 
-    def _ray_bracket(self, pose: Pose, tol_m: float,
-                     limit_m: float | None = None) -> Bracket | None:
+    def _ray_bracket(self, pose: Pose, tol_m: float, limit_m: float | None = None,
+                     known_free: bool = False) -> Bracket | None:
         """Exact contact along Δ from `pose` by rays: a bracket `tol_m` wide about it."""
-        travel = self.ray_travel(pose, limit_m)
+        travel = self.ray_travel(pose, limit_m, known_free)
         if travel is None:
             return None
         return Bracket(translated(pose, (travel - 0.5 * tol_m) * self.push),
