@@ -1,0 +1,105 @@
+"""Two tables of one knee, built with the travel by python-fcl and by rays: where they differ.
+
+Run: `python benchmarks/travel_tables.py FCL.npz RAYS.npz [--workers 2] [--limit N]`
+(each from `kneeseat build CONFIG --travel fcl|rays`). Prints, per body, how many cells
+differ by more than the resolution (the frame origin's displacement, or the turn times the
+body's reach), the largest difference, and then the referee's verdicts (`kneeseat verify`'s
+judge: python-fcl and Nelder-Mead, nothing of the settle) on those cells of the rays table:
+how many are at rest and the largest gain. Also the build figures both tables recorded.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import sys
+
+import numpy as np
+
+from kneeseat_core.geometry import matrix_from_quat
+from kneeseat_core.knee import config_from_metadata
+from kneeseat_core.meshes import load_meshes
+from kneeseat_core.referee import verify_table
+from kneeseat_core.sweep import executor_for
+from kneeseat_core.table import PoseTable, read_table
+from machine import describe_machine
+
+
+def reach_m(table: PoseTable, body: int) -> float:
+    """The body's farthest vertex from its centroid (m), from its meshes."""
+    config = config_from_metadata(table.metadata)
+    spec = config.bodies[body]
+    mesh = load_meshes([str(p) for p in spec.meshes], config.units, quiet=True)
+    return float(np.max(np.linalg.norm(mesh.vertices - mesh.centroid, axis=1)))
+
+
+def differing(a: PoseTable, b: PoseTable, body: int, resolution: float) -> \
+        tuple[list[tuple[int, int, int]], float, float]:
+    """Cells of `body` converged in both and apart by more than `resolution` (as a
+    displacement or an arc at the body's reach); the largest displacement and arc (m)."""
+    reach = reach_m(a, body)
+    cells, worst_d, worst_arc = [], 0.0, 0.0
+    nf, nv = a.converged.shape[1:]
+    for i in range(nf):
+        for j in range(nv):
+            if not (a.converged[body, i, j] and b.converged[body, i, j]):
+                continue
+            d = float(np.linalg.norm(a.position_m[body, i, j] - b.position_m[body, i, j]))
+            ra = matrix_from_quat(a.orientation_xyzw[body, i, j])
+            rb = matrix_from_quat(b.orientation_xyzw[body, i, j])
+            cos = 0.5 * (float(np.trace(ra.T @ rb)) - 1.0)
+            arc = float(np.arccos(np.clip(cos, -1.0, 1.0))) * reach
+            worst_d, worst_arc = max(worst_d, d), max(worst_arc, arc)
+            if d > resolution or arc > resolution:
+                cells.append((body, i, j))
+    return cells, worst_d, worst_arc
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('fcl', type=Path, help='table built with --travel fcl')
+    parser.add_argument('rays', type=Path, help='table built with --travel rays')
+    parser.add_argument('--workers', type=int, default=2)
+    parser.add_argument('--limit', type=int, default=None,
+                        help='judge at most this many differing cells, evenly spread over '
+                        'them (all by default)')
+    args = parser.parse_args(argv)
+    a, b = read_table(args.fcl), read_table(args.rays)
+    if a.position_m.shape != b.position_m.shape or a.bodies != b.bodies:
+        print('travel_tables: the two tables have different grids or bodies', file=sys.stderr)
+        return 2
+    resolution = float(a.metadata['settle']['resolution_m'])
+    print(describe_machine())
+    for name, t in (('fcl', a), ('rays', b)):
+        s = t.metadata['summary']
+        print(f'{name}: {s["converged"]}/{s["cells"]} converged, {s["wall_s"]:.1f} s wall, '
+              f'{s["collision_checks"] / s["cells"]:.0f} python-fcl queries and '
+              f'{s.get("ray_casts", 0) / s["cells"]:.0f} ray casts per cell')
+    judge: list[tuple[int, int, int]] = []
+    for body, name in enumerate(a.bodies):
+        cells, worst_d, worst_arc = differing(a, b, body, resolution)
+        print(f'{name}: {len(cells)} of {int(a.converged[body].sum())} cells differ by more '
+              f'than the resolution ({resolution * 1e3:g} mm); largest {worst_d * 1e3:.3f} mm, '
+              f'arc {worst_arc * 1e3:.3f} mm')
+        judge += cells
+    if args.limit is not None and len(judge) > args.limit:
+        picks = np.linspace(0, len(judge) - 1, args.limit).round().astype(int)
+        judge = [judge[k] for k in sorted(set(picks.tolist()))]
+    if not judge:
+        return 0
+    executor, close = executor_for(args.workers, None)
+    try:
+        verdicts = list(verify_table(args.rays, judge, executor, extent=False))
+    finally:
+        close()
+    gains = [v.gain_m for v in verdicts if v.converged]
+    not_at_rest = [v for v in verdicts if v.converged and v.gain_m > resolution]
+    print(f'referee on the {len(verdicts)} differing cells of the rays table: '
+          f'{len(gains) - len(not_at_rest)} at rest, {len(not_at_rest)} not; largest gain '
+          f'{max(gains) * 1e3:.3f} mm')
+    for v in not_at_rest:
+        print('  ' + v.line(resolution))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
