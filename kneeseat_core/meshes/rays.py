@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-import time
 import weakref
 
 import numpy as np
@@ -32,8 +31,6 @@ from kneeseat_core.typed import Floats, Ints, Pose
 from .collision import CollisionPair, RigidBody
 
 __all__ = ['RayBody', 'RayPair', 'ray_body', 'hidden_gap_m']
-
-_NO_HIT = 1e30     # Embree's miss distance is 1e37; anything beyond this is a miss
 
 
 # The surface is sampled for the near set's distances by its vertices and, on triangles
@@ -89,8 +86,7 @@ class RayBody:
         out = self.scene.run(o, np.ascontiguousarray(d), output=1)
         dist = out['tfar'].astype(np.float64)
         prim = out['primID'].astype(np.int64)
-        dist[prim < 0] = math.inf
-        dist[dist > _NO_HIT] = math.inf
+        dist[prim < 0] = math.inf      # a miss (Embree leaves its far distance there)
         return dist, prim
 
     def near(self, points: Floats, within: float) -> tuple[Ints, Floats]:
@@ -211,7 +207,6 @@ class RayPair:
     casts: int = 0               # casts made
     rays: int = 0                # rays cast
     draws: int = 0               # near sets drawn
-    ray_s: float = 0.0           # wall time of the casts and the near sets
     _fixed: RayBody = field(init=False, repr=False)
     _moving: RayBody = field(init=False, repr=False)
     _closed: bool = field(init=False, repr=False)
@@ -230,7 +225,6 @@ class RayPair:
     def _draw(self, pose: Pose) -> _NearSet:
         """Draw the near set at `pose` (the vertices left out are at least the margin from
         the other body)."""
-        started = time.perf_counter()
         rot, t = pose[:3, :3], pose[:3, 3]
         moving = self.pair.moving.vertices
         keep_m, bound_m = self._fixed.near(moving @ rot.T + t, self.margin_m)
@@ -240,7 +234,6 @@ class RayPair:
         _NEAR_SETS.setdefault(self.pair.moving, weakref.WeakKeyDictionary())[
             self.pair.fixed] = near
         self.draws += 1
-        self.ray_s += time.perf_counter() - started
         return near
 
     def _moved(self, near: _NearSet | None, pose: Pose) -> float:
@@ -260,7 +253,6 @@ class RayPair:
         """One cast at `pose` from the vertices of `near` that may be within `window` of
         the other body (their bound less `moved`): the travel to the first hit that enters
         the other body, and whether some ray's first hit leaves it instead."""
-        started = time.perf_counter()
         rot, t = pose[:3, :3], pose[:3, 3]
         up = near.moving[near.moving_bound < window + moved] @ rot.T + t
         d1, p1 = self._fixed.first_hits(up, self.push)
@@ -273,7 +265,6 @@ class RayPair:
                      float(np.min(d2[~leaves2], initial=math.inf)))
         self.casts += 1
         self.rays += len(up) + len(down)
-        self.ray_s += time.perf_counter() - started
         return travel, bool(leaves1.any() or leaves2.any())
 
     def travel_from(self, pose: Pose, limit_m: float, known_free: bool = False) -> float | None:

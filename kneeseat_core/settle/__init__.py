@@ -52,7 +52,6 @@ from __future__ import annotations
 import numpy as np
 
 from kneeseat_core.errors import NoContactError, SettleError
-from kneeseat_core.geometry import unit
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.meshes import CollisionPair, RayPair, RigidBody
 from kneeseat_core.params import Method, SettleParams
@@ -91,13 +90,11 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
         raise SettleError('ligaments act on the moving body but no load is given; give the '
                           'load on the push in newtons (load_n)')
     start = np.asarray(start, dtype=np.float64)
-    pair = CollisionPair(fixed, moving)
-    rays = RayPair(pair, unit(np.asarray(params.push, dtype=float), 'push direction'),
-                   TUNING.near_margin_steps * params.step_m,
-                   TUNING.ray_window_res * params.resolution_m) \
-        if params.method == 'default' and params.travel == 'rays' else None
-    search = Search(pair, start, params,
-                    start if anchor is None else np.asarray(anchor, dtype=np.float64), rays)
+    search = Search(CollisionPair(fixed, moving), start, params,
+                    start if anchor is None else np.asarray(anchor, dtype=np.float64))
+    if params.method == 'default' and params.travel == 'rays':
+        search.rays = RayPair(search.pair, search.push, TUNING.near_margin_steps * params.step_m,
+                              TUNING.ray_window_res * params.resolution_m)
     pose = search.back_out(start)
     limit = search.travel_limit(pose)
     tol = params.resolution_m if params.method == 'patent' \

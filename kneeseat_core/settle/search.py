@@ -313,20 +313,27 @@ class Search:
         python-fcl decides (a start may be buried where no vertex ray sees it)."""
         if not self.pair.collides(pose):
             return pose
+        self.backed_out_m = self._retreat(
+            pose, self.params.step_m, self.params.resolution_m,
+            'the start pose is buried in the fixed body and cannot be backed out along the '
+            'push direction; start the moving body outside it')
+        log.info('start pose was in collision: backed out %.3f mm along -push',
+                 self.backed_out_m * 1e3)
+        return translated(pose, -self.backed_out_m * self.push)
+
+    def _retreat(self, pose: Pose, first_m: float, tol_m: float, buried: str) -> float:
+        """How far `pose`, in collision, must move back along -Δ to be free for python-fcl
+        (to `tol_m`): steps doubling from `first_m`, then a dichotomy. Raises SettleError
+        (`buried`) when no free pose lies within twice the travel limit."""
         limit = self.travel_limit(pose)
-        dist = self.params.step_m
+        dist = first_m
         while dist <= 2.0 * limit:
-            cand = translated(pose, -dist * self.push)
-            if not self.pair.collides(cand):
+            if not self.pair.collides(translated(pose, -dist * self.push)):
                 lo, _ = self.bisect(lambda s: translated(pose, -dist * (1.0 - s) * self.push),
-                                    self.params.resolution_m / dist, self.pair.collides)
-                self.backed_out_m = dist * (1.0 - lo)
-                log.info('start pose was in collision: backed out %.3f mm along -push',
-                         self.backed_out_m * 1e3)
-                return translated(pose, -self.backed_out_m * self.push)
+                                    tol_m / dist, self.pair.collides)
+                return dist * (1.0 - lo)
             dist *= 2.0
-        raise SettleError('the start pose is buried in the fixed body and cannot be backed out '
-                          'along the push direction; start the moving body outside it')
+        raise SettleError(buried)
 
     def drop(self, pose: Pose, tol_m: float, limit_m: float | None = None,
              step_m: float | None = None) -> Bracket | None:
@@ -394,15 +401,8 @@ class Search:
         free, to `tol_m`. Returns the pose and how far it was backed out (m)."""
         if self.rays is None or not self.pair.collides(pose):
             return pose, 0.0
-        dist, limit = tol_m, self.travel_limit(pose)
-        while self.pair.collides(translated(pose, -dist * self.push)):
-            dist *= 2.0
-            if dist > limit:
-                raise SettleError('python-fcl finds the end pose buried; no free pose behind '
-                                  'it along the push')
-        lo, _ = self.bisect(lambda s: translated(pose, -dist * (1.0 - s) * self.push),
-                            tol_m / dist, self.pair.collides)
-        back = dist * (1.0 - lo)
+        back = self._retreat(pose, tol_m, tol_m, 'python-fcl finds the end pose buried; no '
+                             'free pose behind it along the push')
         log.debug('end pose in collision for python-fcl: backed out %.4f mm', back * 1e3)
         return translated(pose, -back * self.push), back
 
