@@ -116,6 +116,13 @@ class CollisionPair:
     def contact_points(self, pose: Pose) -> tuple[Ints, Floats]:
         """Every overlapping pair of triangles at `pose`: the reference triangle (k,) and the
         point (k, 3) m, fixed frame, where the two triangles cross (python-fcl's contact).
+        """
+        ids, _, points = self.crossings(pose)
+        return ids, points
+
+    def crossings(self, pose: Pose) -> tuple[Ints, Ints, Floats]:
+        """Every overlapping pair of triangles at `pose`: the reference triangle (k,), the
+        moving body's triangle (k,) and the point (k, 3) m, fixed frame, where they cross.
 
         fcl reports each contact as (o1, b1, o2, b2); which side is the reference is
         decided by object identity, never by argument order.
@@ -123,7 +130,7 @@ class CollisionPair:
         request = fcl.CollisionRequest(num_max_contacts=_MAX_CONTACTS, enable_contact=True)
         result = self._query(pose, request)
         fixed_geom = self.fixed.bvh
-        ids = np.fromiter((c.b1 if c.o1 is fixed_geom else c.b2 for c in result.contacts),
-                          dtype=np.int64, count=len(result.contacts))
+        sides = np.array([(c.b1, c.b2) if c.o1 is fixed_geom else (c.b2, c.b1)
+                          for c in result.contacts], dtype=np.int64).reshape(-1, 2)
         points = np.array([c.pos for c in result.contacts], dtype=np.float64).reshape(-1, 3)
-        return ids, points
+        return sides[:, 0], sides[:, 1], points
