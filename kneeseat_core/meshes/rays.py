@@ -9,15 +9,21 @@ there is about the sagitta of the surface's turn across an edge (`hidden_gap_m`)
 python-fcl stays the judge where that matters (a start in collision, the settle's final
 pose, the referee).
 
-`RayBody` is one mesh's Embree scene, the samples of its surface in a k-d tree and a grid
-of distance bounds filled as it is asked, built once per body and process.
-`RayPair` answers for one settle: it casts only from the vertices near the other body (the
-near set) and proves the set still holds before every answer, from how far the body has
-moved since the set was drawn (`_moved`) and how far the vertices left out were from the
-other body then: a vertex at distance d from the other surface cannot touch it before some
-point of the body has moved by d. A ray whose first hit leaves the other body starts
-inside it: between closed meshes the pose is in collision; where either mesh is open (a
-ray can meet a back face through a hole) python-fcl decides.
+`RayBody` is one mesh's Embree scene, built once per body and process, and for the near
+set the samples of its surface in a k-d tree and a grid of distance bounds filled as it is
+asked (built when first needed). `RayPair` answers for one settle. `blocked`: whether
+probes, each lifted along Δ, are in collision as given vertices see them (the proof of
+rest asks it before python-fcl; a ray entering the other body short of the lift is a real
+contact, so a probe it blocks is blocked; one it does not is left to python-fcl).
+`travel_from` (the travel by rays, `travel: rays`) casts only from the vertices near the
+other body (the near set) and proves the set still holds before every answer, from how
+far the body has moved since the set was drawn (`_moved`) and how far the vertices left
+out were from the other body then: a vertex at distance d from the other surface cannot
+touch it before some point of the body has moved by d. A ray whose first hit leaves the
+other body may start inside it, and python-fcl decides: a closed mesh can fold over itself
+(the total knee's insert does, by a fraction of a millimetre), so a back face met first
+does not prove a vertex inside, and a vertex through an open sheet sees no back face at
+all (where a mesh is open, a pose not known free is asked of python-fcl first).
 """
 from __future__ import annotations
 
@@ -26,8 +32,9 @@ import math
 import weakref
 
 import numpy as np
+import trimesh
 
-from kneeseat_core.typed import Floats, Ints, Pose
+from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .collision import CollisionPair, RigidBody
 
 __all__ = ['RayBody', 'RayPair', 'ray_body', 'hidden_gap_m']
@@ -44,28 +51,63 @@ _SAMPLE_EDGE_M = 5e-4
 _CELL_M = 5e-4
 _MAX_CELLS = 8_000_000
 _PAD_M = 8e-3
+# A hit distance is trusted to this (m): the scenes are float32 about each body's centre,
+# whose rounding at a knee's size is a few nanometres.
+_RAY_NOISE_M = 1e-7
 
 
 class RayBody:
     """One body's triangles as an Embree scene (float32, about the body's bound centre, so
-    a nanometre is still resolved) and a k-d tree of points sampling its surface."""
+    a nanometre is still resolved); for the near set, built when first asked, a k-d tree
+    of points sampling its surface and a grid of distance bounds (`near`)."""
 
     def __init__(self, body: RigidBody) -> None:
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
-        from scipy.spatial import cKDTree
+        self.body = weakref.proxy(body)
         self.origin = body.bound_centre.copy()
         self.scene = rtcore_scene.EmbreeScene()
         local = (body.vertices - self.origin).astype(np.float32)
         TriangleMesh(scene=self.scene, vertices=local,
                      indices=body.faces.astype(np.int32))
+        self.face_normals = np.asarray(body.mesh.face_normals, dtype=np.float64)
+        self.closed = bool(body.mesh.is_watertight)
+        self._grid: _DistanceGrid | None = None
+
+    def first_hits(self, origins: Floats, direction: Floats) -> tuple[Floats, Ints]:
+        """The first hit of a ray from each of `origins` (k, 3), body frame, along the unit
+        `direction` (3,) or directions (k, 3): distances (k,) m (inf: no hit) and triangle
+        indices (k,) (-1)."""
+        if len(origins) == 0:
+            return np.zeros(0), np.zeros(0, dtype=np.int64)
+        o = (origins - self.origin).astype(np.float32)
+        d = np.ascontiguousarray(np.broadcast_to(direction.astype(np.float32), o.shape))
+        out = self.scene.run(o, d, output=1)
+        dist = out['tfar'].astype(np.float64)
+        prim = out['primID'].astype(np.int64)
+        dist[prim < 0] = math.inf      # a miss (Embree leaves its far distance there)
+        return dist, prim
+
+    def near(self, points: Floats, within: float) -> tuple[Ints, Floats]:
+        """The indices of `points` (k, 3), body frame, that may lie within `within` m of
+        the surface, and a lower bound on each one's distance from it (m)
+        (`_DistanceGrid.near`)."""
+        if self._grid is None:
+            self._grid = _DistanceGrid(self.body)
+        return self._grid.near(points, within)
+
+
+class _DistanceGrid:
+    """Lower bounds on the distance to one body's surface, on a grid of cubes about it
+    filled as points fall in them, from a k-d tree of points sampling the surface."""
+
+    def __init__(self, body: RigidBody) -> None:
+        from scipy.spatial import cKDTree
         edges = np.linalg.norm(body.vertices[body.faces]
                                - body.vertices[np.roll(body.faces, 1, axis=1)], axis=2)
         self.spacing_m = max(_SAMPLE_EDGE_M, float(np.percentile(edges, 50.0)))
         self.tree = cKDTree(_surface_samples(body.vertices, body.faces, edges.max(axis=1),
                                              self.spacing_m))
-        self.face_normals = np.asarray(body.mesh.face_normals, dtype=np.float64)
-        self.closed = bool(body.mesh.is_watertight)
         self.pad_m = _PAD_M + self.spacing_m
         self.low = body.vertices.min(axis=0) - self.pad_m
         extent = body.vertices.max(axis=0) + self.pad_m - self.low
@@ -75,19 +117,6 @@ class RayBody:
         # per cube: a lower bound on the distance from any point in it to the surface
         # (m; NaN: not known yet)
         self.cells = np.full(int(np.prod(self.shape)), np.nan, dtype=np.float32)
-
-    def first_hits(self, origins: Floats, direction: Floats) -> tuple[Floats, Ints]:
-        """The first hit of a ray from each of `origins` (k, 3), body frame, along the unit
-        `direction` (3,): distances (k,) m (inf: no hit) and triangle indices (k,) (-1)."""
-        if len(origins) == 0:
-            return np.zeros(0), np.zeros(0, dtype=np.int64)
-        o = (origins - self.origin).astype(np.float32)
-        d = np.broadcast_to(direction.astype(np.float32), o.shape)
-        out = self.scene.run(o, np.ascontiguousarray(d), output=1)
-        dist = out['tfar'].astype(np.float64)
-        prim = out['primID'].astype(np.int64)
-        dist[prim < 0] = math.inf      # a miss (Embree leaves its far distance there)
-        return dist, prim
 
     def near(self, points: Floats, within: float) -> tuple[Ints, Floats]:
         """The indices of `points` (k, 3), body frame, that may lie within `within` m of
@@ -143,9 +172,9 @@ def ray_body(body: RigidBody) -> RayBody:
     return found
 
 
-def hidden_gap_m(a: RigidBody, b: RigidBody) -> tuple[float, float]:
-    """How wide a gap vertex rays can miss between `a` and `b` (m): the median and the
-    99th percentile over the edges of both meshes.
+def hidden_gap_m(*meshes: trimesh.Trimesh) -> tuple[float, float]:
+    """How wide a gap vertex rays can miss between the `meshes` (m): the median and the
+    99th percentile over the edges of all of them.
 
     Where an edge of one mesh first touches an edge of the other, no vertex touches yet;
     the nearest vertices stand off by about a quarter of an edge times the angle the
@@ -154,13 +183,12 @@ def hidden_gap_m(a: RigidBody, b: RigidBody) -> tuple[float, float]:
     the upper tail.
     """
     bounds = []
-    for body in (a, b):
-        mesh = body.mesh
+    for mesh in meshes:
         edges = mesh.face_adjacency_edges
-        length = np.linalg.norm(body.vertices[edges[:, 0]] - body.vertices[edges[:, 1]],
+        length = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]],
                                 axis=1)
         bounds.append(0.25 * length * np.asarray(mesh.face_adjacency_angles))
-    every = np.concatenate(bounds)
+    every = np.concatenate(bounds) if bounds else np.zeros(0)
     if len(every) == 0:
         return 0.0, 0.0
     return float(np.median(every)), float(np.percentile(every, 99.0))
@@ -193,10 +221,9 @@ class RayPair:
     was drawn, each with a lower bound on that distance. A cast at a pose the body reached
     since, by moving each of its points at most δ (`_moved`), uses only the vertices whose
     bound less δ is inside a window μ: no other vertex can touch before the body travels μ
-    along Δ, so a first hit within μ is the travel; beyond it, the window doubles. A ray
-    whose first hit leaves the other body starts inside it: between closed meshes the pose
-    is in collision; where either is open (a ray may meet a back face through a hole)
-    python-fcl decides. The set is drawn again where the body has moved by half the
+    along Δ, so a first hit within μ is the travel; beyond it, the window doubles. Where a
+    ray's first hit leaves the other body, python-fcl decides whether the pose is in
+    collision (module docstring). The set is drawn again where the body has moved by half the
     margin since, and kept for the next settle of the same pair.
     """
 
@@ -267,6 +294,36 @@ class RayPair:
         self.rays += len(up) + len(down)
         return travel, bool(leaves1.any() or leaves2.any())
 
+    def blocked(self, moving: Floats, fixed: Floats, poses: Floats, lifts: Floats) -> Bools:
+        """For each pose of `poses` (m, 4, 4): True when a ray from one of the vertices
+        `moving` (k, 3, moving frame) along +Δ, or from one of `fixed` (j, 3, fixed frame)
+        along -Δ, enters the other body short of the pose's lift (`lifts` (m,), by more than
+        the rays' rounding `_RAY_NOISE_M`): the surfaces meet before the lift, so the body
+        there, lifted, is in collision. False proves nothing (the vertices left out, an edge
+        crossing an edge, a ray that starts inside: a ray slipping through an edge between
+        two triangles meets a back face from outside, so a back face is not taken for
+        inside here). One cast of every vertex at every pose."""
+        m = len(poses)
+        rot, t = poses[:, :3, :3], poses[:, :3, 3]
+        out = np.zeros(m, dtype=bool)
+        up_of, down_of = np.repeat(np.arange(m), len(moving)), np.repeat(np.arange(m), len(fixed))
+        up = (np.einsum('mij,kj->mki', rot, moving) + t[:, None]).reshape(-1, 3)
+        down = np.einsum('mji,mkj->mki', rot, fixed[None] - t[:, None]).reshape(-1, 3)
+        down_dirs = np.repeat(-np.einsum('mji,j->mi', rot, self.push), len(fixed), axis=0)
+        for body, origins, dirs, of in ((self._fixed, up, self.push, up_of),
+                                        (self._moving, down, down_dirs, down_of)):
+            if len(origins) == 0:
+                continue
+            dist, prim = body.first_hits(origins, dirs)
+            hit = prim >= 0
+            facing = np.einsum('ij,ij->i', body.face_normals[np.maximum(prim, 0)],
+                               np.broadcast_to(dirs, origins.shape))
+            enters = hit & (dist < lifts[of] - _RAY_NOISE_M) & (facing < 0.0)
+            out[of[enters]] = True
+            self.rays += len(origins)
+        self.casts += 1
+        return out
+
     def travel_from(self, pose: Pose, limit_m: float, known_free: bool = False) -> float | None:
         """The travel along Δ from `pose` to the first contact (inf: none within
         `limit_m`), or None when `pose` is itself in collision. Where either mesh is open
@@ -287,7 +344,7 @@ class RayPair:
             travel, inside = self._cast(near, base, window, moved)
             if inside and not asked:
                 asked = True
-                if done == 0.0 and (self._closed or self.pair.collides(base)):
+                if done == 0.0 and self.pair.collides(base):
                     return None
             if travel <= window:
                 return done + travel
