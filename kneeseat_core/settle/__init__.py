@@ -32,7 +32,10 @@ named where it is made:
      one resolution across the envelope is flat), probes - 26 directions of slides, spins
      and their combinations at 1, 4 and 16 times the finest move, lifted by a quarter
      resolution from a bracket narrowed to res/64 - must all collide; a probe that gains is
-     followed outward while it gains, and the climb resumes. D1b: when the hull balances
+     followed outward while it gains, and the climb resumes. The rays are asked first
+     (`RayPair.blocked`, one cast per probe scale from the vertices of the triangles in
+     contact): a probe they block is in collision, exactly; python-fcl decides the rest,
+     so every gain is python-fcl's. D1b: when the hull balances
      only because one patch sits at its own crest, the body spins about that patch.
   D6 honest ends: "converged" only after D5. Not converged: the iteration cap; lost contact
      (the body slid off the fixed body); leaving the search envelope (`max_slide_m` across
@@ -92,7 +95,7 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
     start = np.asarray(start, dtype=np.float64)
     search = Search(CollisionPair(fixed, moving), start, params,
                     start if anchor is None else np.asarray(anchor, dtype=np.float64))
-    if params.method == 'default' and params.travel == 'rays':
+    if params.method == 'default':
         search.rays = RayPair(search.pair, search.push, TUNING.near_margin_steps * params.step_m,
                               TUNING.ray_window_res * params.resolution_m)
     pose = search.back_out(start)

@@ -20,7 +20,10 @@ over a small state object (`_Climb`):
   26 directions (slides, spins and their combinations) at three scales, from the finest
   move to 16 times it, each lifted by a quarter resolution, must all collide; a probe that
   gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
-  A probe that the near-active patches prove hopeless by a wide margin is not queried.
+  A probe that the near-active patches prove hopeless by a wide margin is not queried;
+  the rest are asked of rays first (one cast per scale from the vertices of the triangles
+  in contact: a ray entering the other body short of a probe's lift blocks it exactly),
+  and python-fcl decides every probe the rays leave open.
 - the envelope: the climb may not leave it (D6); where the envelope holds (a config's
   soft-tissue stand-in), the move is kept inside and a rest on its boundary is
   reported as constrained.
@@ -39,7 +42,7 @@ import numpy as np
 
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.status import Status
-from kneeseat_core.typed import Floats, Pose
+from kneeseat_core.typed import Bools, Floats, Pose
 from .hull import min_norm_point
 from .objective import Objective, objective_for
 from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
@@ -381,12 +384,15 @@ class _Climb:
                 # a wide margin, the probe cannot gain: no query needed
                 margin = hopeless_res * s.params.resolution_m
                 hopeless = length * model < lift - self.tol - margin
-                for d in directions[order[~hopeless[order]]]:
-                    if s.params.envelope_holds and \
-                            self._room(d, length) < length:
-                        continue
-                    cand = s.lateral(self.pose, length * d, self.arm)
-                    if not self._gains(cand, lift):
+                moves = np.array([d for d in directions[order[~hopeless[order]]]
+                                  if not (s.params.envelope_holds
+                                          and self._room(d, length) < length)])
+                cands = [s.lateral(self.pose, length * d, self.arm) for d in moves]
+                firsts = np.array([self.objective.first_lift(c, self.pose, 0.0, lift)
+                                   for c in cands])
+                refuted = self._refuted(cands, firsts)
+                for d, cand, first, no in zip(moves, cands, firsts, refuted):
+                    if no or not self._gains(cand, lift, float(first)):
                         continue
                     return self._follow(d, length, lift)
         finally:
@@ -394,15 +400,34 @@ class _Climb:
             self.proof_s += time.perf_counter() - started
         return None
 
-    def _gains(self, cand: Pose, lift: float) -> bool:
+    def _refuted(self, cands: list[Pose], firsts: Floats) -> Bools:
+        """(m,) True for each probe of `cands` that the rays find in collision lifted by
+        its `firsts` (the Newton step `_gains` asks python-fcl about first): one cast from
+        the vertices of the triangles in contact at the current pose, at every probe.
+        A ray that enters the other body short of the lift refutes the probe exactly (the
+        travel there is shorter than the lift); False leaves the probe to `_gains`."""
+        s = self.search
+        moving_ids, fixed_ids = self.floor.vertices
+        asked = np.isfinite(firsts) & (np.abs(firsts) <= self.objective.lift_limit)
+        if s.rays is None or not asked.any() or not (len(moving_ids) or len(fixed_ids)):
+            return np.zeros(len(cands), dtype=bool)
+        lifts = np.where(asked, firsts, 0.0)
+        bases = np.array(cands)           # lifted back first where the lift is negative
+        bases[:, :3, 3] += np.minimum(lifts, 0.0)[:, None] * s.push
+        blocked = s.rays.blocked(s.pair.moving.vertices[moving_ids],
+                                 s.pair.fixed.vertices[fixed_ids], bases,
+                                 np.maximum(lifts, 0.0))
+        return blocked & asked
+
+    def _gains(self, cand: Pose, lift: float, first: float) -> bool:
         """Whether the lateral pose `cand` is at least `lift` above the current pose in the
         objective: one query at the lift that proves it, or, where that lift is too deep
-        to prove anything, the contact itself found and weighed."""
+        to prove anything, the contact itself found and weighed (`first`: the Newton
+        step of the lift from `cand`, `Objective.first_lift`)."""
         s, objective = self.search, self.objective
         # the objective is concave along Δ (the load's work is, the energy convex), so one
         # Newton step from the lateral pose lifts no higher than needed: touching there, the
         # probe cannot gain; free, the lift is found exactly and asked again
-        first = objective.first_lift(cand, self.pose, 0.0, lift)
         if abs(first) <= objective.lift_limit and s.collides(translated(cand, first * s.push)):
             return False
         h = objective.lift_to(cand, self.pose, 0.0, lift)

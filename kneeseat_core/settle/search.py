@@ -20,7 +20,7 @@ from kneeseat_core.geometry import rotation_about, unit
 from kneeseat_core.meshes import CollisionPair, RayPair
 from kneeseat_core.params import SettleParams
 from kneeseat_core.status import AT_REST, Status
-from kneeseat_core.typed import Floats, Pose
+from kneeseat_core.typed import Floats, Ints, Pose
 from .patches import contact_patches
 
 __all__ = ['Contacts', 'SettleResult', 'Search', 'Bracket', 'LOST_CONTACT', 'translated',
@@ -38,6 +38,8 @@ class Contacts:
 
     points: Floats    # (k, 3) m
     normals: Floats   # (k, 3) unit outward normals of the reference there
+    # the vertices of the triangles that cross: the moving body's, the reference's
+    vertices: tuple[Ints, Ints] = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
     @classmethod
     def empty(cls) -> Contacts:
@@ -46,7 +48,9 @@ class Contacts:
 
     def __add__(self, other: Contacts) -> Contacts:
         return Contacts(np.concatenate([self.points, other.points]),
-                        np.concatenate([self.normals, other.normals]))
+                        np.concatenate([self.normals, other.normals]),
+                        (np.union1d(self.vertices[0], other.vertices[0]),
+                         np.union1d(self.vertices[1], other.vertices[1])))
 
     def __len__(self) -> int:
         return len(self.points)
@@ -68,7 +72,7 @@ class SettleResult:
     status: int = Status.REST   # `Status` code
     proof_checks: int = 0       # queries (fcl and ray casts) spent proving rest (default)
     proof_s: float = 0.0        # wall time of those proofs (s)
-    ray_casts: int = 0          # casts of the travel by rays (each from the near set)
+    ray_casts: int = 0          # casts of rays (the travel's, the proof's probes')
     rays: int = 0               # rays in those casts
     judged_back_m: float = 0.0  # how far python-fcl backed the final pose out (rays missed)
 
@@ -110,7 +114,9 @@ class Search:
     start: Pose
     params: SettleParams
     anchor: Pose                        # the envelope is measured from here
-    rays: RayPair | None = None         # the travel by rays (None: python-fcl queries only)
+    # rays: the default method's proof asks them first, and with `travel: rays` they
+    # measure the travel too (None: python-fcl answers everything)
+    rays: RayPair | None = None
     push: Floats = field(init=False)
     e1: Floats = field(init=False)
     e2: Floats = field(init=False)
@@ -234,6 +240,11 @@ class Search:
         return None
 
     # ---- collision ----------------------------------------------------------------------
+    @property
+    def rays_travel(self) -> RayPair | None:
+        """The rays, when they measure the travel along Δ (`travel: rays`)."""
+        return self.rays if self.params.travel == 'rays' else None
+
     def collides(self, pose: Pose) -> bool:
         """Boolean collision query (python-fcl; the rays measure travels, not booleans)."""
         return self.pair.collides(pose)
@@ -245,12 +256,13 @@ class Search:
         collision (then found from behind it; `known_free`: the caller knows it is not).
         None: no contact within `limit_m` (default: the travel limit), or a pose buried
         deeper than that."""
-        assert self.rays is not None
+        rays = self.rays_travel
+        assert rays is not None
         limit = self.travel_limit(pose) if limit_m is None else limit_m
         back = 0.0
         while True:
             base = pose if back == 0.0 else translated(pose, -back * self.push)
-            travel = self.rays.travel_from(base, limit + back, known_free and back == 0.0)
+            travel = rays.travel_from(base, limit + back, known_free and back == 0.0)
             if travel is not None:
                 return travel - back if math.isfinite(travel) else None
             back = max(2.0 * back, self.params.resolution_m)
@@ -265,8 +277,10 @@ class Search:
     def patches(self, pose: Pose) -> Contacts:
         """The contact patches at `pose`, one (point, normal) each (D7,
         `kneeseat_core.settle.patches.contact_patches`)."""
-        ids, points = self.pair.contact_points(pose)
-        return Contacts(*contact_patches(self.pair.fixed, ids, points))
+        ids, moving_ids, points = self.pair.crossings(pose)
+        return Contacts(*contact_patches(self.pair.fixed, ids, points),
+                        (np.unique(self.pair.moving.faces[moving_ids]),
+                         np.unique(self.pair.fixed.faces[ids])))
 
     def facing(self, contacts: Contacts, motion: Floats) -> Contacts:
         """Drop back-facing normals: normal · motion >= 0 (patent FIG. 5)."""
@@ -294,7 +308,7 @@ class Search:
         """Dichotomy on the travel along Δ from `pose`: free at `lo`, touching at `hi` (m);
         returns (free, touching) at most `tol_m` apart (by rays: one cast, unless the rays
         see no contact where python-fcl did)."""
-        if self.rays is not None and hi - lo > tol_m:
+        if self.rays_travel is not None and hi - lo > tol_m:
             travel = self.ray_travel(translated(pose, lo * self.push), hi - lo + tol_m,
                                      known_free=True)
             if travel is not None and 0.0 <= travel <= hi - lo:
@@ -344,7 +358,7 @@ class Search:
         """
         step = self.params.step_m if step_m is None else step_m
         limit = self.travel_limit(pose) if limit_m is None else limit_m
-        if self.rays is not None:
+        if self.rays_travel is not None:
             return self._ray_bracket(pose, tol_m, limit, known_free=True)
         travelled = 0.0
         while travelled <= limit:
@@ -366,7 +380,7 @@ class Search:
         Probes just past the guess, then just short of it, widening by doubling until the
         contact is bracketed, then bisects to `tol_m`. None: no contact within the travel
         limit (or a body buried beyond it)."""
-        if self.rays is not None:
+        if self.rays_travel is not None:
             return self._ray_bracket(pose, tol_m, known_free=free_at_start)
         lo: float | None = 0.0 if free_at_start else None     # free here
         hi: float | None = None                               # touching here
@@ -392,14 +406,14 @@ class Search:
         return Bracket(translated(pose, lo * self.push), translated(pose, hi * self.push))
 
     def queries(self) -> int:
-        """Queries answered so far: python-fcl's and the casts of the travel by rays."""
+        """Queries answered so far: python-fcl's and the casts of rays."""
         return self.pair.checks + (self.rays.casts if self.rays is not None else 0)
 
     def judge(self, pose: Pose, tol_m: float) -> tuple[Pose, float]:
         """python-fcl judges the end pose of a climb by rays: a pose it finds in collision
         (an edge crossing an edge where no vertex ray sees it) is backed out along -Δ until
         free, to `tol_m`. Returns the pose and how far it was backed out (m)."""
-        if self.rays is None or not self.pair.collides(pose):
+        if self.rays_travel is None or not self.pair.collides(pose):
             return pose, 0.0
         back = self._retreat(pose, tol_m, tol_m, 'python-fcl finds the end pose buried; no '
                              'free pose behind it along the push')
