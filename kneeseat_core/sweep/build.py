@@ -84,6 +84,8 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
         'backed_out': _backed_out(config, result),
         'soft_tissue': _soft_tissue(config),
     }
+    if config.settle.travel == 'rays':
+        metadata['hidden_gap'] = _hidden_gaps(config)
     return PoseTable(config.flexion_rad, config.varus_rad, result.position_m,
                      result.orientation_xyzw, result.converged, result.iterations, metadata)
 
@@ -101,6 +103,21 @@ def _soft_tissue(config: KneeConfig) -> dict[str, Any] | None:
                                                                  config.placed_before(b)))}
                       for b in config.bodies},
             'method': config.settle.method}
+
+
+def _hidden_gaps(config: KneeConfig) -> dict[str, dict[str, float]]:
+    """Per moving body, the gap vertex rays can miss between it and the reference where an
+    edge crosses an edge (`kneeseat_core.meshes.hidden_gap_m`): median and 99th
+    percentile, micrometres (the travel by rays may exceed python-fcl's by that much)."""
+    from kneeseat_core.meshes import hidden_gap_m, load_meshes
+    reference = load_meshes([str(p) for p in config.reference.meshes], config.units,
+                            quiet=True)
+    out = {}
+    for spec in config.bodies:
+        median, p99 = hidden_gap_m(reference, load_meshes([str(p) for p in spec.meshes],
+                                                          config.units, quiet=True))
+        out[spec.name] = {'median_um': round(median * 1e6, 2), 'p99_um': round(p99 * 1e6, 1)}
+    return out
 
 
 def _backed_out(config: KneeConfig, result: SweepResult) -> dict[str, Any]:
@@ -156,6 +173,11 @@ def summary_line(table: PoseTable, out: Path) -> str:
         line += (f'; {over} neighbour pairs over {cont["bound_mm"]:g} mm / '
                  f'{cont["bound_deg"]:g} deg, {len(cont["branch_changes"])} of them branch '
                  'changes between cells at rest')
+    gaps = table.metadata.get('hidden_gap')
+    if isinstance(gaps, dict):
+        line += '; vertex rays may miss a gap where edges cross of ' + ', '.join(
+            f'{name} {g["median_um"]:g} um median, {g["p99_um"]:g} um 99th percentile'
+            for name, g in gaps.items())
     tissue = table.metadata.get('soft_tissue')
     if isinstance(tissue, dict):
         lig = tissue['ligaments']

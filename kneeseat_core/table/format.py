@@ -20,10 +20,13 @@ was measured from. Provenance, shown when present:
   kneeseat_version, built (ISO 8601 UTC), arrays_sha256 (checked on load), name,
   config (the knee config as read, with a "resolved" part: absolute mesh paths, settle
   parameters, grid in degrees), settle (the settle parameters), summary ({"cells",
-  "converged", "wall_s", "collision_checks"}, python-fcl's queries, and "ray_casts" when
-  the settle measured the travel by rays), failures (the first non-converged reasons),
+  "converged", "wall_s", "collision_checks"}, python-fcl's queries, and "ray_casts": casts
+  of rays, the proof's and (travel by rays) the travel's), failures (the first
+  non-converged reasons),
   cells ({"status_names", "status"}: each cell's `kneeseat_core.status.Status` code),
-  continuity (`kneeseat_core.sweep.continuity`), backed_out (per body: starts in collision).
+  continuity (`kneeseat_core.sweep.continuity`), backed_out (per body: starts in collision),
+  hidden_gap (travel by rays only: per body {"median_um", "p99_um"}, the gap vertex rays
+  can miss between it and the reference where edges cross).
 
 `arrays_sha256` is the SHA-256 of, for each array in `ARRAY_NAMES` order, the UTF-8 line
 `'<name> <dtype> <d0>x<d1>x...\\n'` followed by the array's C-order bytes, where the array is
