@@ -81,7 +81,7 @@ def check_agreement(fixed: RigidBody, moving: RigidBody, poses: list[np.ndarray]
     """Each pose's travel by rays against the referee's; returns the RayPair used."""
     pair = CollisionPair(fixed, moving)
     rays = RayPair(CollisionPair(fixed, moving), push, margin_m, 4 * RESOLUTION_M)
-    hidden = hidden_gap_m(fixed, moving)[1]
+    hidden = hidden_gap_m(fixed.mesh, moving.mesh)[1]
     for pose in poses:
         pose = backed(pair, pose, push)
         want = fcl_travel(pair, pose, push)
@@ -119,8 +119,9 @@ def test_the_near_set_is_drawn_again_when_the_body_has_moved() -> None:
 
 
 def test_a_pose_in_collision_is_found_so() -> None:
-    """Between closed meshes a vertex inside the other body is a collision without asking
-    python-fcl; the referee agrees the pose is buried."""
+    """A ray whose first hit leaves the other body sends the pose to python-fcl (one
+    query: a back face met first proves nothing where a closed mesh folds over itself),
+    and the referee agrees the pose is buried."""
     var = sc.variant('sphere_bowl', 'plain')
     push = var.push / np.linalg.norm(var.push)
     pair = CollisionPair(var.fixed, var.moving)
@@ -131,7 +132,7 @@ def test_a_pose_in_collision_is_found_so() -> None:
     assert pair.collides(buried)
     rays = RayPair(CollisionPair(var.fixed, var.moving), push, 4e-3, 4 * RESOLUTION_M)
     assert rays.travel_from(buried, 0.05) is None
-    assert rays.pair.checks == 0
+    assert rays.pair.checks == 1
 
 
 def test_settle_by_rays_meets_the_analytic_rest() -> None:
@@ -210,18 +211,112 @@ def test_a_config_chooses_the_travel_and_names_a_wrong_one() -> None:
 def test_a_table_built_by_rays_is_at_rest_for_the_referee(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:
-    """A coarse default-knee build with `--travel rays`: the casts are in the summary and
-    the metadata, and `kneeseat verify` (python-fcl, nothing of the settle) finds every
-    cell at rest."""
+    """A coarse default-knee build with `--travel rays`: the casts and the gap rays may
+    miss are in the summary and the metadata, and `kneeseat verify` (python-fcl, nothing
+    of the settle) finds every cell at rest."""
     from kneeseat_core.cli import main
     from kneeseat_core.table import read_table
     monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'cache'))
     out = tmp_path / 'knee.npz'
     assert main(['build', '--out', str(out), '--workers', '1', '--quiet', '--travel', 'rays',
                  '--flexion-grid', '0,-90,45', '--varus-grid', '-5,5,5']) == 0
-    assert 'ray casts per cell' in capsys.readouterr().out
+    summary = capsys.readouterr().out
+    assert 'ray casts per cell' in summary
+    assert 'vertex rays may miss a gap where edges cross of tibia' in summary
     meta = read_table(out).metadata
     assert meta['settle']['travel'] == 'rays'
+    gaps = meta['hidden_gap']
+    assert set(gaps) == {'tibia', 'patella'}
+    assert all(0.0 < g['median_um'] <= g['p99_um'] for g in gaps.values()), gaps
     assert meta['summary']['ray_casts'] > meta['summary']['cells']
     assert meta['summary']['converged'] == meta['summary']['cells']
     assert main(['verify', str(out), '--workers', '1']) == 0, capsys.readouterr().out
+
+
+def probe_scene(fixed: RigidBody, moving: RigidBody, start: np.ndarray, push: np.ndarray,
+                seed: int, slide_m: float, spin_deg: float) -> tuple[int, int, int]:
+    """Probes about a contact pose, as the proof of rest makes them: the body slid and spun
+    across `push` and lifted along it, rays from the vertices of the triangles python-fcl
+    finds crossing just past contact. Every probe the rays call blocked must collide for
+    python-fcl; returns (probes, colliding for python-fcl, blocked by the rays)."""
+    pair = CollisionPair(fixed, moving)
+    free = backed(pair, start, push)
+    free[:3, 3] += fcl_travel(pair, free, push) * push - 2 * TOL_M * push
+    touching = free.copy()
+    touching[:3, 3] += 0.25 * RESOLUTION_M * push
+    fixed_tris, moving_tris, _ = pair.crossings(touching)
+    assert len(fixed_tris), 'no contact to probe from'
+    rays = RayPair(CollisionPair(fixed, moving), push, 4e-3, 4 * RESOLUTION_M)
+    centre = free[:3, :3] @ moving.centroid + free[:3, 3]
+    probes = np.array(lateral_poses(free, push, centre, seed, 24, slide_m, spin_deg))
+    lifts = np.random.default_rng(seed).choice([2.5e-6, 2.5e-5, 1e-4], len(probes))
+    blocked = rays.blocked(moving.vertices[np.unique(moving.faces[moving_tris])],
+                           fixed.vertices[np.unique(fixed.faces[fixed_tris])], probes, lifts)
+    colliding = 0
+    for probe, lift, no in zip(probes, lifts, blocked):
+        lifted = probe.copy()
+        lifted[:3, 3] += lift * push
+        hit = pair.collides(lifted)
+        colliding += hit
+        assert hit or not no, f'the rays refuted a probe python-fcl finds free (lift {lift})'
+    assert rays.casts == 1
+    return len(probes), colliding, int(blocked.sum())
+
+
+@pytest.mark.parametrize('name', sc.SCENES)
+def test_a_probe_the_rays_block_collides_for_python_fcl(name: str) -> None:
+    """The proof of rest asks the rays first: a probe they block must be in collision for
+    python-fcl (a ray entering the other body short of the lift is a real contact). They
+    leave to python-fcl the probes buried by the move itself (a ray cannot tell inside
+    from a fold) and those touching by an edge; on these scenes they still block a third
+    of the probes that collide or more."""
+    var = sc.variant(name, 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    probes, colliding, blocked = probe_scene(var.fixed, var.moving, var.start, push, seed=7,
+                                             slide_m=4e-4, spin_deg=1.0)
+    assert 0 < blocked <= colliding
+    assert blocked >= colliding // 3, f'{blocked} of {colliding} colliding probes blocked'
+
+
+@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
+def test_a_probe_the_rays_block_collides_for_python_fcl_on_the_total_knee() -> None:
+    fixed = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'femoral_component.stl', 'm'))
+    moving = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'tibial_insert.stl', 'm'))
+    start = pose_from(np.eye(3), np.array([0.0, -2e-3, 0.0]))
+    probes, colliding, blocked = probe_scene(fixed, moving, start, np.array([0.0, 1.0, 0.0]),
+                                             seed=5, slide_m=4e-4, spin_deg=1.0)
+    assert colliding >= probes // 3 and blocked >= colliding // 3, (probes, colliding, blocked)
+
+
+@pytest.mark.skipif(not (SHARED / 'natural_knee').is_dir(),
+                    reason='no shared natural knee data')
+def test_a_probe_the_rays_block_collides_for_python_fcl_on_open_sheets() -> None:
+    """Open sheets: rays entering a sheet short of the lift block as between closed
+    meshes."""
+    data = SHARED / 'natural_knee'
+    fixed = RigidBody.from_mesh(load_meshes([str(data / 'femur_cartilage.stl'),
+                                             str(data / 'femur_bone.stl')], 'm', quiet=True))
+    moving = RigidBody.from_mesh(load_meshes([str(data / 'tibia_cartilage.stl'),
+                                              str(data / 'tibia_bone.stl')], 'm', quiet=True))
+    start = pose_from(np.eye(3), np.array([0.0, -1e-3, 0.0]))
+    probes, colliding, blocked = probe_scene(fixed, moving, start, np.array([0.0, 1.0, 0.0]),
+                                             seed=9, slide_m=1e-3, spin_deg=2.0)
+    assert colliding >= probes // 3 and blocked >= colliding // 3, (probes, colliding, blocked)
+
+
+@pytest.mark.parametrize('name', sc.SCENES)
+def test_the_proof_by_rays_ends_where_python_fcl_alone_ends(
+        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The default method asks the rays about its probes before python-fcl: the same end
+    pose bit for bit as with python-fcl answering every probe, in fewer python-fcl
+    queries."""
+    import kneeseat_core.settle as settle_module
+    var = sc.variant(name, 'rotated')
+    params = SettleParams(push=tuple(float(v) for v in var.push / np.linalg.norm(var.push)))
+    with_rays = settle(var.fixed, var.moving, var.start, params)
+    monkeypatch.setattr(settle_module, 'RayPair', lambda *args: None)
+    alone = settle(var.fixed, var.moving, var.start, params)
+    assert alone.ray_casts == 0 and with_rays.ray_casts > 0
+    assert with_rays.converged and alone.converged
+    assert np.array_equal(with_rays.pose, alone.pose)
+    assert with_rays.collision_checks < alone.collision_checks
