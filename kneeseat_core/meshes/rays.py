@@ -74,15 +74,21 @@ class RayBody:
         self.closed = bool(body.mesh.is_watertight)
         self._grid: _DistanceGrid | None = None
 
-    def first_hits(self, origins: Floats, direction: Floats) -> tuple[Floats, Ints]:
+    def first_hits(self, origins: Floats, direction: Floats,
+                   reach: Floats | None = None) -> tuple[Floats, Ints]:
         """The first hit of a ray from each of `origins` (k, 3), body frame, along the unit
         `direction` (3,) or directions (k, 3): distances (k,) m (inf: no hit) and triangle
-        indices (k,) (-1)."""
+        indices (k,) (-1). With `reach` (k,) m each ray ends there (at least): a hit
+        beyond may be missed, and a short ray costs Embree a few BVH nodes."""
         if len(origins) == 0:
             return np.zeros(0), np.zeros(0, dtype=np.int64)
         o = (origins - self.origin).astype(np.float32)
         d = np.ascontiguousarray(np.broadcast_to(direction.astype(np.float32), o.shape))
-        out = self.scene.run(o, d, output=1)
+        if reach is None:
+            out = self.scene.run(o, d, output=1)
+        else:               # rounded up to float32: a ray never ends short of its reach
+            far = np.nextafter(reach.astype(np.float32), np.float32(np.inf))
+            out = self.scene.run(o, d, dists=far, output=1)
         dist = out['tfar'].astype(np.float64)
         prim = out['primID'].astype(np.int64)
         dist[prim < 0] = math.inf      # a miss (Embree leaves its far distance there)
@@ -300,26 +306,30 @@ class RayPair:
         along -Δ, enters the other body short of the pose's lift (`lifts` (m,), by more than
         the rays' rounding `_RAY_NOISE_M`): the surfaces meet before the lift, so the body
         there, lifted, is in collision. False proves nothing (the vertices left out, an edge
-        crossing an edge, a ray that starts inside: a ray slipping through an edge between
-        two triangles meets a back face from outside, so a back face is not taken for
-        inside here). One cast of every vertex at every pose."""
-        m = len(poses)
-        rot, t = poses[:, :3, :3], poses[:, :3, 3]
-        out = np.zeros(m, dtype=bool)
-        up_of, down_of = np.repeat(np.arange(m), len(moving)), np.repeat(np.arange(m), len(fixed))
-        up = (np.einsum('mij,kj->mki', rot, moving) + t[:, None]).reshape(-1, 3)
-        down = np.einsum('mji,mkj->mki', rot, fixed[None] - t[:, None]).reshape(-1, 3)
-        down_dirs = np.repeat(-np.einsum('mji,j->mi', rot, self.push), len(fixed), axis=0)
-        for body, origins, dirs, of in ((self._fixed, up, self.push, up_of),
-                                        (self._moving, down, down_dirs, down_of)):
+        crossing an edge, a ray that starts inside; a back face met first is not taken for
+        inside: a ray from outside meets one where a closed mesh folds over itself, as the
+        total knee's insert does). One cast of every vertex at every pose with a lift
+        beyond the rounding, each ray ending at its pose's lift."""
+        out = np.zeros(len(poses), dtype=bool)
+        reach = lifts - _RAY_NOISE_M
+        asked = np.flatnonzero(reach > 0.0)
+        if len(asked) == 0:
+            return out
+        rot, t = poses[asked, :3, :3], poses[asked, :3, 3]
+        up = (moving[None] @ rot.transpose(0, 2, 1) + t[:, None]).reshape(-1, 3)
+        down = ((fixed[None] - t[:, None]) @ rot).reshape(-1, 3)
+        down_dirs = np.repeat(-(self.push @ rot), len(fixed), axis=0)
+        for body, origins, dirs, of in ((self._fixed, up, self.push,
+                                         np.repeat(asked, len(moving))),
+                                        (self._moving, down, down_dirs,
+                                         np.repeat(asked, len(fixed)))):
             if len(origins) == 0:
                 continue
-            dist, prim = body.first_hits(origins, dirs)
-            hit = prim >= 0
-            facing = np.einsum('ij,ij->i', body.face_normals[np.maximum(prim, 0)],
-                               np.broadcast_to(dirs, origins.shape))
-            enters = hit & (dist < lifts[of] - _RAY_NOISE_M) & (facing < 0.0)
-            out[of[enters]] = True
+            dist, prim = body.first_hits(origins, dirs, reach[of])
+            hit = np.flatnonzero((prim >= 0) & (dist < reach[of]))
+            facing = np.einsum('ij,ij->i', body.face_normals[prim[hit]],
+                               np.broadcast_to(dirs, origins.shape)[hit])
+            out[of[hit[facing < 0.0]]] = True
             self.rays += len(origins)
         self.casts += 1
         return out
