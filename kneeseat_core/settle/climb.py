@@ -378,6 +378,7 @@ class _Climb:
         model = np.min(grads @ directions.T, axis=0) if len(grads) \
             else np.zeros(len(directions))
         order = np.argsort(-model)                       # most promising first
+        near = self._floor_vertices()
         try:
             for scale, hopeless_res in zip(t.probe_scales_moves, t.hopeless_res):
                 length = scale * self.finest
@@ -394,7 +395,7 @@ class _Climb:
                     cands = [s.lateral(self.pose, length * d, self.arm) for d in batch]
                     firsts = np.array([self.objective.first_lift(c, self.pose, 0.0, lift)
                                        for c in cands])
-                    refuted = self._refuted(cands, firsts)
+                    refuted = self._refuted(cands, firsts, near)
                     for d, cand, first, no in zip(batch, cands, firsts, refuted):
                         if no or not self._gains(cand, lift, float(first)):
                             continue
@@ -404,23 +405,32 @@ class _Climb:
             self.proof_s += time.perf_counter() - started
         return None
 
-    def _refuted(self, cands: list[Pose], firsts: Floats) -> Bools:
+    def _floor_vertices(self) -> tuple[Floats, Floats]:
+        """The vertices (body frames) of the triangles that cross at the floor's contact:
+        the moving body's, the reference's (none without rays to cast from them)."""
+        pair = self.search.pair
+        if self.search.rays is None:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        moving_tris, fixed_tris = self.floor.triangles
+        return (pair.moving.vertices[np.unique(pair.moving.faces[moving_tris])],
+                pair.fixed.vertices[np.unique(pair.fixed.faces[fixed_tris])])
+
+    def _refuted(self, cands: list[Pose], firsts: Floats,
+                 near: tuple[Floats, Floats]) -> Bools:
         """(m,) True for each probe of `cands` that the rays find in collision lifted by
         its `firsts` (the Newton step `_gains` asks python-fcl about first): one cast from
-        the vertices of the triangles in contact at the current pose, at every probe.
+        the `near` vertices (`_floor_vertices`), at every probe.
         A ray that enters the other body short of the lift refutes the probe exactly (the
         travel there is shorter than the lift); False leaves the probe to `_gains`."""
         s = self.search
-        moving_ids, fixed_ids = self.floor.vertices
+        moving_near, fixed_near = near
         asked = np.isfinite(firsts) & (np.abs(firsts) <= self.objective.lift_limit)
-        if s.rays is None or not asked.any() or not (len(moving_ids) or len(fixed_ids)):
+        if s.rays is None or not asked.any() or not (len(moving_near) or len(fixed_near)):
             return np.zeros(len(cands), dtype=bool)
         lifts = np.where(asked, firsts, 0.0)
         bases = np.array(cands)           # lifted back first where the lift is negative
         bases[:, :3, 3] += np.minimum(lifts, 0.0)[:, None] * s.push
-        blocked = s.rays.blocked(s.pair.moving.vertices[moving_ids],
-                                 s.pair.fixed.vertices[fixed_ids], bases,
-                                 np.maximum(lifts, 0.0))
+        blocked = s.rays.blocked(moving_near, fixed_near, bases, np.maximum(lifts, 0.0))
         return blocked & asked
 
     def _gains(self, cand: Pose, lift: float, first: float) -> bool:

@@ -38,8 +38,8 @@ class Contacts:
 
     points: Floats    # (k, 3) m
     normals: Floats   # (k, 3) unit outward normals of the reference there
-    # the vertices of the triangles that cross: the moving body's, the reference's
-    vertices: tuple[Ints, Ints] = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    # the triangles that cross (repeats allowed): the moving body's, the reference's
+    triangles: tuple[Ints, Ints] = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
     @classmethod
     def empty(cls) -> Contacts:
@@ -49,8 +49,8 @@ class Contacts:
     def __add__(self, other: Contacts) -> Contacts:
         return Contacts(np.concatenate([self.points, other.points]),
                         np.concatenate([self.normals, other.normals]),
-                        (np.union1d(self.vertices[0], other.vertices[0]),
-                         np.union1d(self.vertices[1], other.vertices[1])))
+                        (np.concatenate([self.triangles[0], other.triangles[0]]),
+                         np.concatenate([self.triangles[1], other.triangles[1]])))
 
     def __len__(self) -> int:
         return len(self.points)
@@ -278,9 +278,7 @@ class Search:
         """The contact patches at `pose`, one (point, normal) each (D7,
         `kneeseat_core.settle.patches.contact_patches`)."""
         ids, moving_ids, points = self.pair.crossings(pose)
-        return Contacts(*contact_patches(self.pair.fixed, ids, points),
-                        (np.unique(self.pair.moving.faces[moving_ids]),
-                         np.unique(self.pair.fixed.faces[ids])))
+        return Contacts(*contact_patches(self.pair.fixed, ids, points), (moving_ids, ids))
 
     def facing(self, contacts: Contacts, motion: Floats) -> Contacts:
         """Drop back-facing normals: normal · motion >= 0 (patent FIG. 5)."""
