@@ -124,6 +124,30 @@ def test_bad_fibres_are_refused_with_the_key_named(items: list[object], message:
         parse_ligaments(items, 'config ligaments', BODIES)
 
 
+def test_the_rates_of_many_poses_at_once_are_each_pose_s_own_bit_for_bit() -> None:
+    # the settle's proof weighs a batch of probes at once and must climb exactly as one
+    # pose at a time would: the same products and sums, not merely close ones
+    rng = np.random.default_rng(20261202)
+    items = [fibre(f'f{i}', [('femur', list(rng.normal(0, 0.02, 3))),
+                             ('tibia', list(rng.normal(0, 0.02, 3)))], 0.01 + 0.02 * rng.random())
+             for i in range(40)]
+    paths = items + [fibre(f'p{i}', [('femur', list(rng.normal(0, 0.02, 3))),
+                                     ('tibia', list(rng.normal(0, 0.02, 3))),
+                                     ('tibia', list(rng.normal(0, 0.02, 3)))], 0.05)
+                     for i in range(9)]
+    for fibres in (items, paths):          # one segment a fibre, and paths of several
+        tissue = parse_ligaments(fibres, 'test', BODIES).tissue('tibia', {'femur': np.eye(4)})
+        assert tissue is not None and tissue.single == (fibres is items)
+        poses = np.array([pose_from(rotation_about(rng.normal(size=3) / 3.0, rng.normal(0, 0.2)),
+                                    rng.normal(0, 0.005, 3)) for _ in range(64)])
+        for size in (1, 4, 16, 43):
+            energies, forces, torques = tissue.rates_many(poses[:size])
+            for pose, energy, force, torque in zip(poses[:size], energies, forces, torques):
+                alone = tissue.rates(pose)
+                assert energy == alone[0] and energy > 0.0
+                assert np.array_equal(force, alone[1]) and np.array_equal(torque, alone[2])
+
+
 @pytest.mark.parametrize('knee, fibres', [('natural_knee', 76), ('tka_dm', 149)])
 def test_the_shared_sets_read_and_reproduce_their_recorded_strains(
         knee: str, fibres: int) -> None:

@@ -393,8 +393,8 @@ class _Climb:
                 # spares the lifts of the rest, a scale at rest takes few casts
                 for batch in _batches(moves, t.probe_batch_grow):
                     cands = [s.lateral(self.pose, length * d, self.arm) for d in batch]
-                    firsts = np.array([self.objective.first_lift(c, self.pose, 0.0, lift)
-                                       for c in cands])
+                    firsts = self.objective.first_lifts(np.array(cands), self.pose, 0.0,
+                                                        lift)
                     refuted = self._refuted(cands, firsts, near)
                     for d, cand, first, no in zip(batch, cands, firsts, refuted):
                         if no or not self._gains(cand, lift, float(first)):
@@ -437,7 +437,7 @@ class _Climb:
         """Whether the lateral pose `cand` is at least `lift` above the current pose in the
         objective: one query at the lift that proves it, or, where that lift is too deep
         to prove anything, the contact itself found and weighed (`first`: the Newton
-        step of the lift from `cand`, `Objective.first_lift`)."""
+        step of the lift from `cand`, `Objective.first_lifts`)."""
         s, objective = self.search, self.objective
         # the objective is concave along Δ (the load's work is, the energy convex), so one
         # Newton step from the lateral pose lifts no higher than needed: touching there, the

@@ -71,10 +71,11 @@ class Objective:
         `lift_limit` the query would prove nothing: the caller finds the contact instead."""
         raise NotImplementedError
 
-    def first_lift(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
-        """One Newton step of `lift_to` from no lift: at most the lift needed (the objective
-        is concave along Δ)."""
-        return self.lift_to(target, base, base_gap, gain)
+    def first_lifts(self, targets: Floats, base: Pose, base_gap: float,
+                    gain: float) -> Floats:
+        """(m,) one Newton step of `lift_to` from no lift for each of `targets` (m, 4, 4):
+        at most the lift needed (the objective is concave along Δ)."""
+        return np.array([self.lift_to(t, base, base_gap, gain) for t in targets])
 
     def target(self, base: Pose, base_gap: float, gain: float) -> float:
         """The objective `gain` above its value at `base` lifted by `base_gap`."""
@@ -164,14 +165,24 @@ class Work(Objective):
         """Δ (3,)."""
         return self.search.push
 
-    def first_lift(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
-        """One Newton step from no lift (one evaluation of the tissue): the objective is
-        concave along Δ (the load's work is; the energy is convex in each length, each
-        length convex along Δ), so this lifts no higher than the exact lift."""
-        slope = self.pressing(target)
-        if slope <= 0.0:
-            return math.inf
-        return (self.target(base, base_gap, gain) - self.value(target)) / slope
+    def first_lifts(self, targets: Floats, base: Pose, base_gap: float,
+                    gain: float) -> Floats:
+        """One Newton step from no lift for each of `targets` (m, 4, 4), the tissue
+        evaluated at all of them at once: the objective is concave along Δ (the load's work
+        is; the energy is convex in each length, each length convex along Δ), so each lifts
+        no higher than the exact lift (inf where the body is not pressed on)."""
+        want = self.target(base, base_gap, gain)
+        if self.tissue is None:
+            energies, forces = np.zeros(len(targets)), np.zeros((len(targets), 3))
+        else:
+            energies, forces, _ = self.tissue.rates_many(targets)
+        push = self.search.push
+        out = np.full(len(targets), math.inf)
+        for i, (pose, energy, force) in enumerate(zip(targets, energies, forces)):
+            slope = float(self.line(pose) @ push) - float(force @ push) / self.load_n
+            if slope > 0.0:
+                out[i] = (want - (self._work(pose) - float(energy) / self.load_n)) / slope
+        return out
 
     def line(self, pose: Pose) -> Floats:
         """(3,) unit direction of the load on the body at `pose`."""
@@ -209,13 +220,15 @@ class Work(Objective):
     def value(self, pose: Pose) -> float:
         """The load's work (l . c, or -|o - c|) less E / F (m)."""
         per_load = self._tissue(pose)[0]
+        return self._work(pose) - per_load
+
+    def _work(self, pose: Pose) -> float:
+        """The load's work per unit load, l . c or -|o - c| (m)."""
         centre = self.search.centre(pose)
         if self.toward is None:
-            work = float(self.search.push @ centre)
-        else:
-            d = self.toward - centre
-            work = -math.sqrt(float(d @ d))
-        return work - per_load
+            return float(self.search.push @ centre)
+        d = self.toward - centre
+        return -math.sqrt(float(d @ d))
 
     def _rates(self, pose: Pose) -> tuple[float, Floats]:
         """dE/ds / F along Δ, and dE/dx / F over (slide e1, slide e2, arc), at `pose`."""
