@@ -33,8 +33,8 @@ named where it is made:
      and their combinations at 1, 4 and 16 times the finest move, lifted by a quarter
      resolution from a bracket narrowed to res/64 - must all collide; a probe that gains is
      followed outward while it gains, and the climb resumes. The rays are asked first
-     (`RayPair.blocked`, one cast per batch of probes from the vertices of the triangles
-     in contact): a probe they block is in collision, exactly; python-fcl decides the rest,
+     (`RayPair.blocked`, one cast per probe scale from the vertices of the triangles in
+     contact): a probe they block is in collision, exactly; python-fcl decides the rest,
      so every gain is python-fcl's. D1b: when the hull balances
      only because one patch sits at its own crest, the body spins about that patch.
   D6 honest ends: "converged" only after D5. Not converged: the iteration cap; lost contact

@@ -21,10 +21,9 @@ over a small state object (`_Climb`):
   move to 16 times it, each lifted by a quarter resolution, must all collide; a probe that
   gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
   A probe that the near-active patches prove hopeless by a wide margin is not queried;
-  the rest are asked of rays first (in order of promise, one cast per growing batch of
-  probes, from the vertices of the triangles in contact: a ray entering the other body
-  short of a probe's lift blocks it exactly), and python-fcl decides every probe the rays
-  leave open.
+  the rest are asked of rays first (one cast per scale from the vertices of the triangles
+  in contact: a ray entering the other body short of a probe's lift blocks it exactly),
+  and python-fcl decides every probe the rays leave open.
 - the envelope: the climb may not leave it (D6); where the envelope holds (a config's
   soft-tissue stand-in), the move is kept inside and a rest on its boundary is
   reported as constrained.
@@ -34,7 +33,6 @@ the climb is in `kneeseat_core.settle.tuning`.
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 import itertools
 import math
@@ -389,17 +387,15 @@ class _Climb:
                 hopeless = length * model < lift - self.tol - margin
                 moves = [d for d in directions[order[~hopeless[order]]]
                          if not (s.params.envelope_holds and self._room(d, length) < length)]
-                # in order of promise, in batches that grow: a probe that gains early
-                # spares the lifts of the rest, a scale at rest takes few casts
-                for batch in _batches(moves, t.probe_batch_grow):
-                    cands = [s.lateral(self.pose, length * d, self.arm) for d in batch]
-                    firsts = self.objective.first_lifts(np.array(cands), self.pose, 0.0,
-                                                        lift)
-                    refuted = self._refuted(cands, firsts, near)
-                    for d, cand, first, no in zip(batch, cands, firsts, refuted):
-                        if no or not self._gains(cand, lift, float(first)):
-                            continue
-                        return self._follow(d, length, lift)
+                if not moves:
+                    continue
+                cands = [s.lateral(self.pose, length * d, self.arm) for d in moves]
+                firsts = self.objective.first_lifts(np.array(cands), self.pose, 0.0, lift)
+                refuted = self._refuted(cands, firsts, near)
+                for d, cand, first, no in zip(moves, cands, firsts, refuted):
+                    if no or not self._gains(cand, lift, float(first)):
+                        continue
+                    return self._follow(d, length, lift)
         finally:
             self.proof_checks += s.queries() - checks_before
             self.proof_s += time.perf_counter() - started
@@ -475,15 +471,6 @@ class _Climb:
             length = grown
         end = self._arrive(best, self._floor_at(best.free))
         return _Outcome(max(self.step, t.resume_moves * self.finest), end)
-
-
-def _batches(items: list[Floats], grow: float) -> Iterator[list[Floats]]:
-    """`items` in order, in consecutive batches of 1, `grow`, `grow`^2... items."""
-    start, size = 0, 1.0
-    while start < len(items):
-        stop = start + max(1, int(size))
-        yield items[start:stop]
-        start, size = stop, size * grow
 
 
 def run_climb(search: Search, bracket: Bracket, tissue: Tissue | None = None,

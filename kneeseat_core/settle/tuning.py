@@ -57,9 +57,6 @@ class SettleTuning:
             model says loses more than this (beyond the lift) is not sent to python-fcl:
             normals would have to be off by tens of degrees, or the surface fold over
             within the probe, to hide a gain behind such a loss.
-        probe_batch_grow: a scale's probes are computed (pose, lift) and asked of rays in
-            batches of 1, this many, its square... in order of promise (a cost, not a
-            guess: every probe is asked until one gains, in the same order).
         follow_grow: a probe that gained is followed outward, its length growing by this
             factor while it gains.
         resume_moves: after a followed probe the climb resumes with a step of at least
@@ -86,7 +83,6 @@ class SettleTuning:
     probe_lift_res: float = 0.25
     probe_bracket_res: float = 1.0 / 64.0
     hopeless_res: tuple[float, ...] = (1.0, 1.0, 5.0)
-    probe_batch_grow: float = 4.0
     follow_grow: float = 2.0
     resume_moves: float = 2.0
 
