@@ -26,6 +26,7 @@ from kneeseat_core.cli import main
 from kneeseat_core.meshes import CollisionPair
 from kneeseat_core.geometry import pose_from, quat_from_matrix, rotation_about
 from kneeseat_core.settle import settle, SettleParams, SettleResult
+from kneeseat_core.settle.search import Search
 import settle_cases as sc
 
 RESOLUTION_M = 1e-4                          # the default SettleParams().resolution_m
@@ -146,6 +147,25 @@ def test_settling_again_does_not_move() -> None:
     cos = (np.trace(first.pose[:3, :3].T @ again.pose[:3, :3]) - 1.0) / 2.0
     arc = math.acos(min(1.0, cos)) * farthest_radius(var, first.pose)
     assert arc <= 2.0 * RESOLUTION_M
+
+
+@pytest.mark.parametrize('locked', [None, (0.0, 0.0, 1.0)])
+def test_many_lateral_moves_at_once_are_each_move_s_own_bit_for_bit(
+        locked: tuple[float, float, float] | None) -> None:
+    # the proof of rest builds a scale's probes at once and must probe exactly the poses
+    # one move at a time would: the same products, not merely close ones
+    var = sc.variant('key_pocket', 'rotated')
+    rng = np.random.default_rng(20261202)
+    params = SettleParams(push=tuple(float(v) for v in var.push), locked_slide=locked)
+    search = Search(CollisionPair(var.fixed, var.moving), var.start, params, var.start)
+    for _ in range(20):
+        base = pose_from(rotation_about(rng.normal(size=3) / 2.0, rng.normal()),
+                         rng.normal(0.0, 0.01, 3))
+        moves = rng.normal(0.0, 1e-3, (26, 3))
+        many = search.laterals(base, moves, 0.02)
+        for move, pose in zip(moves, many):
+            assert np.array_equal(pose, search.lateral(base, move, 0.02))
+        assert not np.array_equal(many[0], many[1])
 
 
 @pytest.mark.parametrize('name', ['sphere_cone', 'key_pocket'])

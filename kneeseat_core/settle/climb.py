@@ -389,8 +389,8 @@ class _Climb:
                          if not (s.params.envelope_holds and self._room(d, length) < length)]
                 if not moves:
                     continue
-                cands = [s.lateral(self.pose, length * d, self.arm) for d in moves]
-                firsts = self.objective.first_lifts(np.array(cands), self.pose, 0.0, lift)
+                cands = s.laterals(self.pose, length * np.array(moves), self.arm)
+                firsts = self.objective.first_lifts(cands, self.pose, 0.0, lift)
                 refuted = self._refuted(cands, firsts, near)
                 for d, cand, first, no in zip(moves, cands, firsts, refuted):
                     if no or not self._gains(cand, lift, float(first)):
@@ -411,9 +411,9 @@ class _Climb:
         return (pair.moving.vertices[np.unique(pair.moving.faces[moving_tris])],
                 pair.fixed.vertices[np.unique(pair.fixed.faces[fixed_tris])])
 
-    def _refuted(self, cands: list[Pose], firsts: Floats,
+    def _refuted(self, cands: Floats, firsts: Floats,
                  near: tuple[Floats, Floats]) -> Bools:
-        """(m,) True for each probe of `cands` that the rays find in collision lifted by
+        """(m,) True for each probe of `cands` (m, 4, 4) that the rays find in collision lifted by
         its `firsts` (the Newton step `_gains` asks python-fcl about first): one cast from
         the `near` vertices (`_floor_vertices`), at every probe.
         A ray that enters the other body short of the lift refutes the probe exactly (the
@@ -424,7 +424,7 @@ class _Climb:
         if s.rays is None or not asked.any() or not (len(moving_near) or len(fixed_near)):
             return np.zeros(len(cands), dtype=bool)
         lifts = np.where(asked, firsts, 0.0)
-        bases = np.array(cands)           # lifted back first where the lift is negative
+        bases = cands.copy()              # lifted back first where the lift is negative
         bases[:, :3, 3] += np.minimum(lifts, 0.0)[:, None] * s.push
         blocked = s.rays.blocked(moving_near, fixed_near, bases, np.maximum(lifts, 0.0))
         return blocked & asked
