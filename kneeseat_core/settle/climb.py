@@ -370,7 +370,8 @@ class _Climb:
         checks_before, started = s.queries(), time.perf_counter()
         # the pose's own bracket is narrowed first, so a probe free at the lift has gained
         # at least the lift less a sliver: every probe that succeeds is real progress
-        self._narrow(t.probe_bracket_res * s.params.resolution_m / self._pressed())
+        pressed = self._pressed()
+        self._narrow(t.probe_bracket_res * s.params.resolution_m / pressed)
         grads = self.gradients(self.floor)
         directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
         model = np.min(grads @ directions.T, axis=0) if len(grads) \
@@ -382,8 +383,10 @@ class _Climb:
                 length = scale * self.finest
                 # the near-active patches bound the travel after the probe by
                 # tol + length * model (plus curvature); where that is short of the lift by
-                # a wide margin, the probe cannot gain: no query needed
-                margin = hopeless_res * s.params.resolution_m
+                # a wide margin, the probe cannot gain: no query needed. The curvature the
+                # model leaves out is a length along Δ, worth `pressed` times as much
+                # objective where ligaments press the body on
+                margin = hopeless_res * s.params.resolution_m * pressed
                 hopeless = length * model < lift - self.tol - margin
                 moves = [d for d in directions[order[~hopeless[order]]]
                          if not (s.params.envelope_holds and self._room(d, length) < length)]

@@ -54,9 +54,10 @@ class SettleTuning:
         probe_lift_res: a probe gains when the moved body is still free lifted this much.
         probe_bracket_res: before probing, the pose's contact bracket is narrowed to this.
         hopeless_res: per probe scale, a probe that the near-active patches' first-order
-            model says loses more than this (beyond the lift) is not sent to python-fcl:
-            normals would have to be off by tens of degrees, or the surface fold over
-            within the probe, to hide a gain behind such a loss.
+            model says loses more than this (beyond the lift; resolutions of travel, so
+            times how hard ligaments press the body on in the objective's terms) is not
+            sent to python-fcl: normals would have to be off by tens of degrees, or the
+            surface fold over within the probe, to hide a gain behind such a loss.
         follow_grow: a probe that gained is followed outward, its length growing by this
             factor while it gains.
         resume_moves: after a followed probe the climb resumes with a step of at least
