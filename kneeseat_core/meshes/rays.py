@@ -325,8 +325,9 @@ class RayPair:
                                          np.repeat(asked, len(fixed)))):
             if len(origins) == 0:
                 continue
-            dist, prim = body.first_hits(origins, dirs, reach[of])
-            hit = np.flatnonzero((prim >= 0) & (dist < reach[of]))
+            ray_reach = reach[of]
+            dist, prim = body.first_hits(origins, dirs, ray_reach)
+            hit = np.flatnonzero((prim >= 0) & (dist < ray_reach))
             facing = np.einsum('ij,ij->i', body.face_normals[prim[hit]],
                                np.broadcast_to(dirs, origins.shape)[hit])
             out[of[hit[facing < 0.0]]] = True

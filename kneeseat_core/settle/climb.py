@@ -406,19 +406,17 @@ class _Climb:
 
     def _floor_vertices(self) -> tuple[Floats, Floats]:
         """The vertices (body frames) of the triangles that cross at the floor's contact:
-        the moving body's, the reference's (none without rays to cast from them)."""
+        the moving body's, the reference's."""
         pair = self.search.pair
-        if self.search.rays is None:
-            return np.zeros((0, 3)), np.zeros((0, 3))
         moving_tris, fixed_tris = self.floor.triangles
         return (pair.moving.vertices[np.unique(pair.moving.faces[moving_tris])],
                 pair.fixed.vertices[np.unique(pair.fixed.faces[fixed_tris])])
 
     def _refuted(self, cands: Floats, firsts: Floats,
                  near: tuple[Floats, Floats]) -> Bools:
-        """(m,) True for each probe of `cands` (m, 4, 4) that the rays find in collision lifted by
-        its `firsts` (the Newton step `_gains` asks python-fcl about first): one cast from
-        the `near` vertices (`_floor_vertices`), at every probe.
+        """(m,) True for each probe of `cands` (m, 4, 4) that the rays find in collision
+        lifted by its `firsts` (the Newton step `_gains` asks python-fcl about first): one
+        cast from the `near` vertices (`_floor_vertices`), at every probe.
         A ray that enters the other body short of the lift refutes the probe exactly (the
         travel there is shorter than the lift); False leaves the probe to `_gains`."""
         s = self.search

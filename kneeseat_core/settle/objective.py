@@ -176,13 +176,20 @@ class Work(Objective):
             energies, forces = np.zeros(len(targets)), np.zeros((len(targets), 3))
         else:
             energies, forces, _ = self.tissue.rates_many(targets)
-        push = self.search.push
         out = np.full(len(targets), math.inf)
         for i, (pose, energy, force) in enumerate(zip(targets, energies, forces)):
-            slope = float(self.line(pose) @ push) - float(force @ push) / self.load_n
+            slope = self._press(pose, self._along(force))
             if slope > 0.0:
                 out[i] = (want - (self._work(pose) - float(energy) / self.load_n)) / slope
         return out
+
+    def _along(self, force: Floats) -> float:
+        """dE/ds / F: the tissue's rate along Δ per unit load, from its dE/dt `force`."""
+        return float(force @ self.search.push) / self.load_n
+
+    def _press(self, pose: Pose, along: float) -> float:
+        """l . Δ - dE/ds / F at `pose`, given dE/ds / F (`along`)."""
+        return float(self.line(pose) @ self.search.push) - along
 
     def line(self, pose: Pose) -> Floats:
         """(3,) unit direction of the load on the body at `pose`."""
@@ -209,7 +216,7 @@ class Work(Objective):
         about_centre = ux * (cy * fz - cz * fy) + uy * (cz * fx - cx * fz) \
             + uz * (cx * fy - cy * fx)                      # (c x force) . push
         moment = (float(torque @ s.push) - about_centre) / self.arm
-        along = float(force @ s.push) / self.load_n
+        along = self._along(force)
         lateral = np.array([float(force @ s.e1), float(force @ s.e2),
                             moment]) / self.load_n
         if len(self._seen) >= _SEEN:
@@ -247,7 +254,7 @@ class Work(Objective):
 
     def pressing(self, pose: Pose) -> float:
         """l . Δ - dE/ds / F."""
-        return float(self.line(pose) @ self.search.push) - self._rates(pose)[0]
+        return self._press(pose, self._rates(pose)[0])
 
     def travel_guess(self, promised: float, lifted: float) -> float:
         """None: the promise is work, not travel (contact is searched from the pose)."""

@@ -162,14 +162,12 @@ class Search:
         """`base` slid by move[0] e1 + move[1] e2 and spun by move[2] / arm (rad) about the
         axis through its centroid parallel to Δ (a spin about any other centre is this
         plus a slide)."""
-        x = np.asarray(move, dtype=np.float64) * self.free
-        out = rotated(base, rotation_about(self.push, x[2] / arm), self.centre(base))
-        out[:3, 3] += x[0] * self.e1 + x[1] * self.e2
+        out: Pose = self.laterals(base, np.asarray(move, dtype=np.float64)[None], arm)[0]
         return out
 
     def laterals(self, base: Pose, moves: Floats, arm: float) -> Floats:
         """`lateral` for each of `moves` (m, 3) at once: (m, 4, 4), each pose bit for bit
-        the one `lateral` gives (the same products, stacked)."""
+        the one it gives alone (the same products, stacked)."""
         x = np.asarray(moves, dtype=np.float64) * self.free
         rots = rotation_about(self.push, x[:, 2] / arm)
         centre = self.centre(base)
