@@ -30,7 +30,8 @@ named where it is made:
      given explicitly, so a rotation can always be refined below one step.
   D5 rest is proved, not assumed: when the patches balance (a slope that could not gain
      one resolution across the envelope is flat), probes - 26 directions of slides, spins
-     and their combinations at 1, 4 and 16 times the finest move, lifted by a quarter
+     and their combinations at 1, 4 and 16 times the finest move (first a quarter of it
+     where ligaments press the body on 8 or more times its load), lifted by a quarter
      resolution from a bracket narrowed to res/64 - must all collide; a probe that gains is
      followed outward while it gains, and the climb resumes. The rays are asked first
      (`RayPair.blocked`, one cast per probe scale from the vertices of the triangles in

@@ -18,7 +18,8 @@ over a small state object (`_Climb`):
   A move that loses depth teaches the contacts that blocked it (D2).
 - `prove`: when the contacts balance (or no move of the finest size is left), probes in
   26 directions (slides, spins and their combinations) at three scales, from the finest
-  move to 16 times it, each lifted by a quarter resolution, must all collide; a probe that
+  move to 16 times it (and a quarter of it first where ligaments press the body on hard),
+  each lifted by a quarter resolution, must all collide; a probe that
   gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
   A probe that the near-active patches prove hopeless by a wide margin is not queried;
   the rest are asked of rays first (one cast per scale from the vertices of the triangles
@@ -379,7 +380,10 @@ class _Climb:
         order = np.argsort(-model)                       # most promising first
         near = self._floor_vertices()
         try:
-            for scale, hopeless_res in zip(t.probe_scales_moves, t.hopeless_res):
+            scales = list(zip(t.probe_scales_moves, t.hopeless_res))
+            if self.objective.smooth and pressed >= t.pressed_from:
+                scales.insert(0, (t.pressed_probe_moves, t.hopeless_res[0]))
+            for scale, hopeless_res in scales:
                 length = scale * self.finest
                 # the near-active patches bound the travel after the probe by
                 # tol + length * model (plus curvature); where that is short of the lift by

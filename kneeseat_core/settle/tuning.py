@@ -51,6 +51,12 @@ class SettleTuning:
             its own crest.
     Proof of rest (D5):
         probe_scales_moves: probe lengths.
+        pressed_from: where the objective presses the body on at least this many times
+            its load (`Objective.pressing`), the proof probes first at...
+        pressed_probe_moves: ...this length: a gain of the proof's lift then needs a
+            travel change that many times smaller, and can lie in a crease narrower than
+            the finest move (the natural knee's tibia at flexion 0, varus 10, pressed on
+            17.5 times: 10-25 um wide).
         probe_lift_res: a probe gains when the moved body is still free lifted this much.
         probe_bracket_res: before probing, the pose's contact bracket is narrowed to this.
         hopeless_res: per probe scale, a probe that the near-active patches' first-order
@@ -81,6 +87,8 @@ class SettleTuning:
     blocked_cap: float = 0.5
     crest_flat: float = 2.0
     probe_scales_moves: tuple[float, ...] = (1.0, 4.0, 16.0)
+    pressed_from: float = 8.0
+    pressed_probe_moves: float = 0.25
     probe_lift_res: float = 0.25
     probe_bracket_res: float = 1.0 / 64.0
     hopeless_res: tuple[float, ...] = (1.0, 1.0, 5.0)
