@@ -19,8 +19,8 @@ over a small state object (`_Climb`):
 - `prove`: when the contacts balance (or no move of the finest size is left), probes in
   26 directions (slides, spins and their combinations) at three scales, from the finest
   move to 16 times it (and a quarter of it first where ligaments press the body on hard),
-  each lifted by a quarter resolution, must all collide; a probe that
-  gains is followed outward while it gains (a pattern move) and the climb resumes (D5).
+  each lifted by a quarter resolution, must all collide; a probe that gains is followed
+  outward while it gains (a pattern move) and the climb resumes (D5).
   A probe that the near-active patches prove hopeless by a wide margin is not queried;
   the rest are asked of rays first (one cast per scale from the vertices of the triangles
   in contact: a ray entering the other body short of a probe's lift blocks it exactly),
@@ -381,7 +381,7 @@ class _Climb:
         near = self._floor_vertices()
         try:
             scales = list(zip(t.probe_scales_moves, t.hopeless_res))
-            if self.objective.smooth and pressed >= t.pressed_from:
+            if pressed >= t.pressed_from:      # never the travel (pressed 1)
                 scales.insert(0, (t.pressed_probe_moves, t.hopeless_res[0]))
             for scale, hopeless_res in scales:
                 length = scale * self.finest

@@ -56,7 +56,7 @@ class SettleTuning:
         pressed_probe_moves: ...this length: a gain of the proof's lift then needs a
             travel change that many times smaller, and can lie in a crease narrower than
             the finest move (the natural knee's tibia at flexion 0, varus 10, pressed on
-            17.5 times: 10-25 um wide).
+            17.5 times: 10-25 um wide). Its hopeless margin is the finest probe's.
         probe_lift_res: a probe gains when the moved body is still free lifted this much.
         probe_bracket_res: before probing, the pose's contact bracket is narrowed to this.
         hopeless_res: per probe scale, a probe that the near-active patches' first-order
