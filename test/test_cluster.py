@@ -34,8 +34,9 @@ from kneeseat_core.table import PoseTable, read_table
 FLEXION = '0,-90,10'
 VARUS = '-10,10,5'
 GRID = {'flexion_deg': [0, -90, 10], 'varus_deg': [-10, 10, 5]}
-CELLS_BEFORE_RIBS = 20        # 2 centre cells + 9 + 9 flexion spine cells
-CHAINS = 24                   # 2 centres + 2 flexion spines + 10 x 2 tibia varus ribs
+UNDER_WAY = 22                # cells reported (of 100) when a worker is killed mid-sweep
+# 2 centres + 2 flexion spines in segments of 8 + 1 cells + 10 x 2 tibia varus ribs
+CHAINS = 2 + 2 * 2 + 20
 MESHES = 3                    # femur, tibia, patella
 DEADLINE_S = 120.0
 
@@ -258,7 +259,7 @@ def test_build_survives_a_killed_worker(small_config: KneeConfig,
     def progress(n: int) -> None:
         nonlocal cells
         cells += n
-        if cells >= CELLS_BEFORE_RIBS + 2:         # spines and one rib done
+        if cells >= UNDER_WAY:
             enough.set()
 
     with local_cluster() as running:

@@ -1,21 +1,27 @@
 """The range-of-motion sweep: settle every grid attitude, warm-started, in parallel chains.
 
-Order (the patent's warm start, made parallel):
+The patent's warm start, made parallel: every cell is settled from its neighbour's rest,
+along chains of three kinds:
 1. the *centre* cell of each moving body (flexion and varus nearest 0) from its cold start;
-2. a *spine* per body: the flexion values at the varus nearest 0, settled outward from the
-   centre, each cell from its neighbour's equilibrium;
+2. a *spine* per body and side of the centre: the flexion values at the varus nearest 0,
+   settled outward from the centre, each cell from its neighbour's equilibrium, run in
+   segments of `SPINE_SEGMENT` cells (each segment from the rest the last one ended on);
 3. a *rib* per (body, flexion value, side): the varus values settled outward from the spine
    cell, each from its neighbour's equilibrium.
-Each phase runs its chains (`kneeseat_core.sweep.chains`) in parallel (across bodies, then
-across flexion values and sides) on any `concurrent.futures.Executor`
-(`kneeseat_core.sweep.executors`). A body whose attitude ignores varus (`varus_fraction:
-0`, e.g. a patella) is settled on its spine only and copied across varus, unless its
-ligaments pull from a body that feels varus.
+A chain runs as soon as what it starts from is settled (`_Sweep.ready`): a rib as soon as
+its spine cell, the next spine segment as soon as the last one, so the ribs of the first
+flexion values keep every worker busy while the spine goes on, and no phase waits for
+another. Chains run on any `concurrent.futures.Executor`
+(`kneeseat_core.sweep.executors`); a chain is the same computation whenever and wherever
+it runs, so the table does not depend on the order. A body whose attitude ignores varus
+(`varus_fraction: 0`, e.g. a patella) is settled on its spine only and copied across
+varus, unless its ligaments pull from a body that feels varus.
 
 A body whose ligaments pull from another moving body (a patella's tendon from the tibia)
-is swept after that body, in a later *wave*: at each cell its fibres are attached to the
-other body as it was settled there. That neglects the pull of those fibres on the body
-settled first (the tendon's on the tibia); docs/design.md says what it changes.
+is settled at a cell after that body: a chain of it runs once the other body is settled at
+each of its cells, its fibres attached to the other body as it was settled there. That
+neglects the pull of those fibres on the body settled first (the tendon's on the tibia);
+docs/design.md says what it changes.
 
 Why ribs along varus rather than columns along flexion: where a body rests on one contact
 only (a tibia tilted by a commanded varus bears on one condyle), its spin about the push
@@ -29,12 +35,13 @@ sheet appear once per mesh), so workers load quietly.
 """
 from __future__ import annotations
 
-from concurrent.futures import as_completed, Executor, Future
+from concurrent.futures import Executor, FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
+import heapq
 import math
 from pathlib import Path
 import time
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -79,6 +86,13 @@ def _outward(n: int, centre: int) -> tuple[list[int], list[int]]:
     return list(range(centre + 1, n)), list(range(centre - 1, -1, -1))
 
 
+# Cells per segment of a spine: short, so that the ribs of the first flexion values run
+# while the spine goes on; each segment starts from the rest the last one ended on.
+SPINE_SEGMENT = 8
+
+Cell = tuple[int, int, int]       # (body, flexion index, varus index)
+
+
 def sweep(config: KneeConfig, executor: Executor,
           progress: Callable[[int], object] | None = None) -> SweepResult:
     """Settle every (body, flexion, varus) cell of `config` on `executor`.
@@ -90,17 +104,46 @@ def sweep(config: KneeConfig, executor: Executor,
     """
     started = time.perf_counter()
     run = _Sweep(config, progress)
-    for wave in run.waves():
-        run.collect([executor.submit(run_chain, j) for j in run.centre_jobs(wave)])
-        run.anchor_at_centres(wave)
-        run.collect([executor.submit(run_chain, j) for j in run.spine_jobs(wave)])
-        run.collect([executor.submit(run_chain, j) for j in run.rib_jobs(wave)])
-        run.copy_across_varus(wave)
+    chains = run.chains()
+    # each chain waits for the cells it starts from; a settled cell frees its waiters
+    missing = [sum(not run.settled[c] for c in chain.after) for chain in chains]
+    waiters: dict[Cell, list[int]] = {}
+    for k, chain in enumerate(chains):
+        for cell in chain.after:
+            waiters.setdefault(cell, []).append(k)
+    ready = [k for k, n in enumerate(missing) if n == 0]
+    running: dict[Future[ChainResult], int] = {}
+    while ready or running:
+        heapq.heapify(ready)              # the chains listed first go first
+        while ready:
+            k = heapq.heappop(ready)
+            running[executor.submit(run_chain, run.job_for(chains[k]))] = k
+        finished, _ = wait(running, return_when=FIRST_COMPLETED)
+        for future in finished:
+            del running[future]
+            for cell in run.take(future.result()):
+                for k in waiters.pop(cell, ()):
+                    missing[k] -= 1
+                    if missing[k] == 0:
+                        ready.append(k)
+    assert not any(missing), 'a chain waited for a cell that no chain settles'
     return run.result(time.perf_counter() - started)
 
 
+@dataclass(frozen=True, slots=True)
+class _Chain:
+    """A chain of the sweep before it runs: its kind, body and cells in order, and the
+    cells that must be settled before it can start (what it is seeded from, and where the
+    bodies its ligaments pull from rest at each of its cells)."""
+
+    kind: str                          # 'centre', 'spine' or 'rib'
+    body: int
+    cells: tuple[tuple[int, int], ...]
+    after: tuple[Cell, ...]
+
+
 class _Sweep:
-    """One sweep's cells in table layout, filled phase by phase (module docstring)."""
+    """One sweep's cells in table layout, filled as its chains finish (module docstring)."""
 
     def __init__(self, config: KneeConfig, progress: Callable[[int], object] | None) -> None:
         self.config, self.progress = config, progress
@@ -118,6 +161,7 @@ class _Sweep:
         self.iterations = np.zeros((nb, nf, nv), dtype=np.int64)
         self.status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
         self.backed = np.zeros((nb, nf, nv))
+        self.settled = np.zeros((nb, nf, nv), dtype=bool)   # the cell's result is in
         self.failures: list[str] = []
         self.checks = 0
         self.casts = 0
@@ -131,15 +175,6 @@ class _Sweep:
         for b, spec in enumerate(config.bodies):
             self.varus_free.append(abs(spec.varus_fraction) < TOL.fraction
                                    and all(self.varus_free[d] for d in self.depends[b]))
-
-    def waves(self) -> list[list[int]]:
-        """The bodies in waves: each after the bodies its ligaments pull from (the config
-        lists a body after those, `KneeConfig.placed_before`)."""
-        wave_of: list[int] = []
-        for deps in self.depends:
-            wave_of.append(1 + max((wave_of[d] for d in deps), default=-1))
-        return [[b for b, w in enumerate(wave_of) if w == k]
-                for k in range(max(wave_of) + 1)]
 
     def job(self, body: int, cells: Sequence[tuple[int, int]], start: Pose,
             start_attitude: Floats) -> ChainJob:
@@ -167,82 +202,92 @@ class _Sweep:
         return SoftTissue(ligaments, spec.name, config.reference.name,
                           tuple(config.bodies[d].name for d in deps), placed)
 
-    def collect(self, futures: Iterable[Future[ChainResult]]) -> None:
-        """Put every finished chain's cells in place, as they finish."""
-        flex, var = self.config.flexion_rad, self.config.varus_rad
-        for fut in as_completed(list(futures)):
-            res = fut.result()
-            for k, (f, v) in enumerate(res.cells):
-                self.poses[res.body, f, v] = res.poses[k]
-                self.converged[res.body, f, v] = res.converged[k]
-                self.iterations[res.body, f, v] = res.iterations[k]
-                self.status[res.body, f, v] = res.status[k]
-                self.backed[res.body, f, v] = res.backed_out_m[k]
-                if not res.converged[k] and len(self.failures) < 5:
-                    self.failures.append(
-                        f'{self.config.bodies[res.body].name} flexion '
-                        f'{math.degrees(flex[f]):g} varus {math.degrees(var[v]):g}: '
-                        f'{res.reasons[k]}')
-            self.checks += res.collision_checks
-            self.casts += res.ray_casts
-            if self.progress:
-                self.progress(len(res.cells))
+    def chains(self) -> list[_Chain]:
+        """Every chain of the sweep, in the order they should run when several can (module
+        docstring): the centre cells, the spines' segments, the ribs by flexion."""
+        nf, nv = len(self.config.flexion_rad), len(self.config.varus_rad)
+        f0, v0 = self.f0, self.v0
+        bodies = range(len(self.config.bodies))
 
-    def centre_jobs(self, wave: list[int]) -> list[ChainJob]:
-        """1. Each body's centre cell, from its cold start."""
-        config, f0, v0 = self.config, self.f0, self.v0
-        jobs = []
-        for b in wave:
-            spec = config.bodies[b]
-            a0 = self.centre_attitudes[b]
-            params = config.params(spec, config.flexion_rad[f0], config.varus_rad[v0])
-            jobs.append(self.job(b, [(f0, v0)], cold_start(a0, params), a0))
-        return jobs
+        def pulled_from(b: int, cells: Sequence[tuple[int, int]]) -> list[Cell]:
+            return [(d, f, v) for d in self.depends[b] for f, v in cells]
 
-    def anchor_at_centres(self, wave: list[int]) -> None:
-        """Every other cell's envelope is measured from the centre rest, carried."""
-        for b in wave:
-            if self.converged[b, self.f0, self.v0]:
-                self.anchors[b] = self.poses[b, self.f0, self.v0]
-
-    def spine_jobs(self, wave: list[int]) -> list[ChainJob]:
-        """2. Spines: varus v0, flexion outward from f0, from the centre rest."""
-        config, f0, v0 = self.config, self.f0, self.v0
-        jobs = []
-        for b in wave:
-            for side in _outward(len(config.flexion_rad), f0):
-                if side:
-                    jobs.append(self.job(b, [(f, v0) for f in side], self.poses[b, f0, v0],
-                                         self.centre_attitudes[b]))
-        return jobs
-
-    def rib_jobs(self, wave: list[int]) -> list[ChainJob]:
-        """3. Ribs: every flexion value of a body that feels varus, varus outward from the
-        spine cell."""
-        config, v0 = self.config, self.v0
-        jobs = []
-        for b in wave:
-            spec = config.bodies[b]
-            if self.varus_free[b]:
-                continue
-            for f in range(len(config.flexion_rad)):
-                for side in _outward(len(config.varus_rad), v0):
+        out = [_Chain('centre', b, ((f0, v0),), tuple(pulled_from(b, [(f0, v0)])))
+               for b in bodies]
+        for b in bodies:
+            for side in _outward(nf, f0):
+                seed = f0
+                for i in range(0, len(side), SPINE_SEGMENT):
+                    cells = tuple((f, v0) for f in side[i:i + SPINE_SEGMENT])
+                    out.append(_Chain('spine', b, cells,
+                                      ((b, seed, v0), *pulled_from(b, cells))))
+                    seed = cells[-1][0]
+        for f in range(nf):
+            for b in bodies:
+                if self.varus_free[b]:
+                    continue
+                for side in _outward(nv, v0):
                     if side:
-                        jobs.append(self.job(b, [(f, v) for v in side], self.poses[b, f, v0],
-                                             config.attitude(spec, config.flexion_rad[f],
-                                                             config.varus_rad[v0])))
-        return jobs
+                        cells = tuple((f, v) for v in side)
+                        out.append(_Chain('rib', b, cells,
+                                          ((b, f, v0), *pulled_from(b, cells))))
+        return out
 
-    def copy_across_varus(self, wave: list[int]) -> None:
-        """A body that ignores varus: its spine, copied to every varus value."""
-        nf, nv, v0 = len(self.config.flexion_rad), len(self.config.varus_rad), self.v0
-        for b in wave:
+    def job_for(self, chain: _Chain) -> ChainJob:
+        """The job of `chain`, whose `after` cells are settled: a centre cell from its cold
+        start, a spine segment from the last rest of the spine before it (the centre's
+        pose when none converged), a rib from its spine cell."""
+        config, b = self.config, chain.body
+        spec, (f, v) = config.bodies[b], chain.cells[0]
+        flex, var = config.flexion_rad, config.varus_rad
+        if chain.kind == 'centre':
+            a0 = self.centre_attitudes[b]
+            return self.job(b, chain.cells, cold_start(a0, config.params(spec, flex[f],
+                                                                         var[v])), a0)
+        if chain.kind == 'spine':
+            step = 1 if f > self.f0 else -1
+            for g in range(f - step, self.f0, -step):       # nearest first
+                if self.converged[b, g, self.v0]:
+                    return self.job(b, chain.cells, self.poses[b, g, self.v0],
+                                    config.attitude(spec, flex[g], var[self.v0]))
+            return self.job(b, chain.cells, self.poses[b, self.f0, self.v0],
+                            self.centre_attitudes[b])
+        return self.job(b, chain.cells, self.poses[b, f, self.v0],
+                        config.attitude(spec, flex[f], var[self.v0]))
+
+    def take(self, res: ChainResult) -> list[Cell]:
+        """Put a finished chain's cells in place; return the cells now settled (with a
+        body that ignores varus, its rows copied across varus)."""
+        flex, var = self.config.flexion_rad, self.config.varus_rad
+        b, nv = res.body, len(var)
+        settled: list[Cell] = []
+        for k, (f, v) in enumerate(res.cells):
+            self.poses[b, f, v] = res.poses[k]
+            self.converged[b, f, v] = res.converged[k]
+            self.iterations[b, f, v] = res.iterations[k]
+            self.status[b, f, v] = res.status[k]
+            self.backed[b, f, v] = res.backed_out_m[k]
+            if not res.converged[k] and len(self.failures) < 5:
+                self.failures.append(
+                    f'{self.config.bodies[b].name} flexion {math.degrees(flex[f]):g} '
+                    f'varus {math.degrees(var[v]):g}: {res.reasons[k]}')
+            if (f, v) == (self.f0, self.v0) and res.converged[k]:
+                # every other cell's envelope is measured from the centre rest, carried
+                self.anchors[b] = res.poses[k]
             if self.varus_free[b]:
                 for cells in (self.poses, self.converged, self.iterations, self.status,
                               self.backed):
-                    cells[b] = cells[b, :, v0:v0 + 1]
-                if self.progress:           # the copies are cells of the table too
-                    self.progress(nf * (nv - 1))
+                    cells[b, f] = cells[b, f, v]
+                settled.extend((b, f, w) for w in range(nv))
+            else:
+                settled.append((b, f, v))
+        for cell in settled:
+            self.settled[cell] = True
+        self.checks += res.collision_checks
+        self.casts += res.ray_casts
+        if self.progress:                 # a copy across varus is cells of the table too
+            self.progress(len(settled))
+        return settled
 
     def result(self, wall_s: float) -> SweepResult:
         """Everything in table layout."""
