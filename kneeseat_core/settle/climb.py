@@ -392,8 +392,9 @@ class _Climb:
                 # objective where ligaments press the body on
                 margin = hopeless_res * s.params.resolution_m * pressed
                 hopeless = length * model < lift - self.tol - margin
-                moves = [d for d in directions[order[~hopeless[order]]]
-                         if not (s.params.envelope_holds and self._room(d, length) < length)]
+                asked = directions[order[~hopeless[order]]]
+                moves = [d for d, room in zip(asked, s.limits_to_envelope(
+                    self.pose, self.arm, asked, length)) if room >= length]
                 if not moves:
                     continue
                 cands = s.laterals(self.pose, length * np.array(moves), self.arm)

@@ -224,21 +224,30 @@ class Search:
                           length: float) -> float:
         """The longest move from `pose` along `direction` (up to `length`) that stays inside
         an envelope that holds (`length` itself otherwise)."""
+        return self.limits_to_envelope(pose, arm, direction[None], length)[0]
+
+    def limits_to_envelope(self, pose: Pose, arm: float, directions: Floats,
+                           length: float) -> list[float]:
+        """`limit_to_envelope` along each of `directions` (m, 3) from one `pose`."""
         p = self.params
         if not p.envelope_holds:
-            return length
+            return [length] * len(directions)
         slide, spin = self.offset(pose)
-        a, b = direction[:2], slide
-        aa = float(a @ a)
-        if aa > 0.0:                       # |b + t a| <= max_slide
-            bb, ab = float(b @ b), float(a @ b)
-            disc = ab * ab - aa * (bb - p.max_slide_m ** 2)
-            if disc >= 0.0:
-                length = min(length, max((-ab + math.sqrt(disc)) / aa, 0.0))
-        if direction[2] != 0.0:
-            room = p.max_spin_rad - math.copysign(1.0, direction[2]) * spin
-            length = min(length, max(room * arm / abs(direction[2]), 0.0))
-        return length
+        bb = float(slide @ slide)
+        out = []
+        for direction in directions:
+            a, most = direction[:2], length
+            aa = float(a @ a)
+            if aa > 0.0:                       # |b + t a| <= max_slide
+                ab = float(a @ slide)
+                disc = ab * ab - aa * (bb - p.max_slide_m ** 2)
+                if disc >= 0.0:
+                    most = min(most, max((-ab + math.sqrt(disc)) / aa, 0.0))
+            if direction[2] != 0.0:
+                room = p.max_spin_rad - math.copysign(1.0, direction[2]) * spin
+                most = min(most, max(room * arm / abs(direction[2]), 0.0))
+            out.append(most)
+        return out
 
     def on_boundary(self, pose: Pose, margin: float, arm: float) -> str | None:
         """Which envelope bound `pose` rests on (within `margin` m), if any."""
