@@ -65,6 +65,12 @@ class Objective:
         travel gradient (k, 3), with the body at `pose`."""
         raise NotImplementedError
 
+    def first_order(self, pose: Pose) -> tuple[float, Floats]:
+        """(press, drive (3,)) at `pose`: a move x over (slide e1, slide e2, arc) that
+        changes the travel by dt changes the objective by press dt + drive . x, to first
+        order (`gradients` is that for each patch's travel gradient)."""
+        raise NotImplementedError
+
     def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
         """How far along Δ `target` must be lifted for the objective there to be `gain`
         above its value at `base` lifted by `base_gap` (m). Where that is deeper than
@@ -116,6 +122,10 @@ class Travel(Objective):
     def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
         """The travel gradients themselves."""
         return travel_grads
+
+    def first_order(self, pose: Pose) -> tuple[float, Floats]:
+        """The travel itself: (1, 0)."""
+        return 1.0, np.zeros(3)
 
     def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
         """`gain + base_gap`: a lateral move leaves the depth along Δ as it was."""
@@ -242,14 +252,19 @@ class Work(Objective):
         _, along, lateral = self._tissue(pose)
         return along, lateral
 
-    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
-        """G = (l . Δ - dE/ds / F) g + l_lateral - dE/dx / F (module docstring)."""
+    def first_order(self, pose: Pose) -> tuple[float, Floats]:
+        """(l . Δ - dE/ds / F, l_lateral - dE/dx / F) (module docstring)."""
         s = self.search
         along, lateral = self._rates(pose)
         line = self.line(pose)
         press = float(line @ s.push) - along
-        drive = np.array([float(line @ s.e1), float(line @ s.e2), 0.0]) - lateral
-        out: Floats = (press * travel_grads + drive) * s.free
+        drive: Floats = np.array([float(line @ s.e1), float(line @ s.e2), 0.0]) - lateral
+        return press, drive
+
+    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
+        """G = (l . Δ - dE/ds / F) g + l_lateral - dE/dx / F (module docstring)."""
+        press, drive = self.first_order(pose)
+        out: Floats = (press * travel_grads + drive) * self.search.free
         return out
 
     def pressing(self, pose: Pose) -> float:
