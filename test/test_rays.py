@@ -171,6 +171,62 @@ def test_travel_matches_python_fcl_on_the_total_knee() -> None:
     check_agreement(fixed, moving, poses, push)
 
 
+def check_gap_field(fixed: RigidBody, moving: RigidBody, poses: list[np.ndarray],
+                    push: np.ndarray, slide_m: float | None, within_m: float = 3e-4) -> None:
+    """At each pose brought to within a tenth of `within_m` of python-fcl's contact, the
+    gap field's shortest gap is python-fcl's travel (no gap shorter: a ray hit is a real
+    contact; none longer than the hidden gap); with `slide_m`, a slide that far across the
+    push changes the shortest gap as the faces the rays meet say (-n . dp / n . push), to
+    the rays' float32 rounding (on meshes whose rays stay on their faces that far)."""
+    pair = CollisionPair(fixed, moving)
+    rays = RayPair(CollisionPair(fixed, moving), push, 4e-3, 4 * RESOLUTION_M)
+    hidden = hidden_gap_m(fixed.mesh, moving.mesh)[1]
+    side = np.cross(push, [1.0, 0.0, 0.0] if abs(push[0]) < 0.9 else [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    checked = 0
+    for pose in poses:
+        pose = backed(pair, pose, push)
+        want = fcl_travel(pair, pose, push)
+        if math.isinf(want):
+            continue
+        pose[:3, 3] += max(want - 0.1 * within_m, 0.0) * push
+        want = fcl_travel(pair, pose, push)
+        gaps, normals, points = rays.gaps(pose, within_m)
+        assert len(gaps) > 0 and np.all(np.abs(np.linalg.norm(normals, axis=1) - 1) < 1e-9)
+        assert np.all(np.abs(normals @ push) > 0.0), 'a face along the push'
+        assert want - TOL_M - 1e-9 <= gaps.min() <= want + hidden + 1e-6, \
+            f'shortest gap {gaps.min() * 1e3:.5f} mm, python-fcl {want * 1e3:.5f} mm'
+        checked += 1
+        if slide_m is None:
+            continue
+        slid = pose.copy()
+        slid[:3, 3] += slide_m * side
+        predicted = gaps - slide_m * (normals @ side) / (normals @ push)
+        moved, _, _ = rays.gaps(slid, within_m)
+        assert abs(predicted.min() - moved.min()) < 2e-7
+    assert checked >= len(poses) // 2
+
+
+@pytest.mark.parametrize('name', sc.SCENES)
+def test_the_gap_field_is_python_fcl_travel_on_the_analytic_scenes(name: str) -> None:
+    var = sc.variant(name, 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    centre = var.start[:3, :3] @ var.moving.centroid + var.start[:3, 3]
+    poses = lateral_poses(var.start, push, centre, seed=4, n=6, slide_m=3e-3, spin_deg=8.0)
+    check_gap_field(var.fixed, var.moving, poses, push, slide_m=1e-5)
+
+
+@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
+def test_the_gap_field_is_python_fcl_travel_on_the_total_knee() -> None:
+    fixed = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'femoral_component.stl', 'm'))
+    moving = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'tibial_insert.stl', 'm'))
+    push = np.array([0.0, 1.0, 0.0])
+    start = pose_from(np.eye(3), np.array([0.0, -2e-3, 0.0]))
+    poses = lateral_poses(start, push, moving.centroid, seed=6, n=6, slide_m=2e-3,
+                          spin_deg=4.0)
+    check_gap_field(fixed, moving, poses, push, slide_m=None)
+
+
 @pytest.mark.skipif(not (SHARED / 'natural_knee').is_dir(),
                     reason='no shared natural knee data')
 def test_travel_matches_python_fcl_on_open_cartilage_sheets() -> None:

@@ -14,7 +14,9 @@ set the samples of its surface in a k-d tree and a grid of distance bounds fille
 asked (built when first needed). `RayPair` answers for one settle. `blocked`: whether
 probes, each lifted along Δ, are in collision as given vertices see them (the proof of
 rest asks it before python-fcl; a ray entering the other body short of the lift is a real
-contact, so a probe it blocks is blocked; one it does not is left to python-fcl).
+contact, so a probe it blocks is blocked; one it does not is left to python-fcl). `gaps`:
+the gap field, every near ray's gap with the normal of the face it enters (the climb's
+leap models the travel over a small lateral move from it).
 `travel_from` (the travel by rays, `travel: rays`) casts only from the vertices near the
 other body (the near set) and proves the set still holds before every answer, from how
 far the body has moved since the set was drawn (`_moved`) and how far the vertices left
@@ -216,6 +218,9 @@ class _NearSet:
 # neighbouring cells start where the last one ended.
 _NEAR_SETS: weakref.WeakKeyDictionary[RigidBody, weakref.WeakKeyDictionary[RigidBody, _NearSet]] \
     = weakref.WeakKeyDictionary()
+# The same for the gap field's vertices (`RayPair.gaps`).
+_GAP_SETS: weakref.WeakKeyDictionary[RigidBody, weakref.WeakKeyDictionary[RigidBody, _NearSet]] \
+    = weakref.WeakKeyDictionary()
 
 
 @dataclass(slots=True, eq=False)
@@ -334,6 +339,52 @@ class RayPair:
             self.rays += len(origins)
         self.casts += 1
         return out
+
+    def gaps(self, pose: Pose, within_m: float) -> tuple[Floats, Floats, Floats]:
+        """The gap field at `pose`: every ray (+Δ from the moving body's vertices, -Δ from
+        the fixed body's) that enters the other body within `within_m`. Returns the gaps
+        (k,) m, the unit normal (k, 3, fixed frame) of the face each ray enters and the
+        point on the moving body's surface where the ray starts or ends (k, 3, fixed
+        frame). The rays are cast from the vertices whose gap was under the margin where
+        they were last drawn (`_gap_draw`: one cast from every vertex, drawn again where
+        the body has moved by half the margin since); a vertex left out may have come
+        nearer on a steep slope, and python-fcl judges every pose the field proposes."""
+        pairs = _GAP_SETS.get(self.pair.moving)
+        found = None if pairs is None else pairs.get(self.pair.fixed)
+        if found is None or self._moved(found, pose) > 0.5 * self.margin_m:
+            found = self._gap_draw(pose)
+        rot, t = pose[:3, :3], pose[:3, 3]
+        up = found.moving @ rot.T + t
+        d1, p1 = self._fixed.first_hits(up, self.push, np.full(len(up), within_m))
+        n1 = self._fixed.face_normals[np.maximum(p1, 0)]
+        in1 = (p1 >= 0) & (d1 < within_m) & (n1 @ self.push < 0.0)
+        down_dir = -(rot.T @ self.push)
+        d2, p2 = self._moving.first_hits((found.fixed - t) @ rot, down_dir,
+                                         np.full(len(found.fixed), within_m))
+        n2 = self._moving.face_normals[np.maximum(p2, 0)]
+        in2 = (p2 >= 0) & (d2 < within_m) & (n2 @ down_dir < 0.0)
+        self.casts += 1
+        self.rays += len(up) + len(found.fixed)
+        return (np.concatenate([d1[in1], d2[in2]]),
+                np.concatenate([n1[in1], n2[in2] @ rot.T]),
+                np.concatenate([up[in1], found.fixed[in2] - d2[in2, None] * self.push]))
+
+    def _gap_draw(self, pose: Pose) -> _NearSet:
+        """The vertices of both bodies whose rays along ±Δ enter the other body within the
+        margin at `pose` (bounds: their gaps then), kept for the next settles of the pair."""
+        rot, t = pose[:3, :3], pose[:3, 3]
+        moving, fixed = self.pair.moving.vertices, self.pair.fixed.vertices
+        reach = np.full(len(moving), self.margin_m)
+        d1, _ = self._fixed.first_hits(moving @ rot.T + t, self.push, reach)
+        d2, _ = self._moving.first_hits((fixed - t) @ rot, -(rot.T @ self.push),
+                                        np.full(len(fixed), self.margin_m))
+        near1, near2 = d1 < self.margin_m, d2 < self.margin_m
+        found = _NearSet(pose.copy(), moving[near1], d1[near1], fixed[near2], d2[near2])
+        _GAP_SETS.setdefault(self.pair.moving, weakref.WeakKeyDictionary())[
+            self.pair.fixed] = found
+        self.casts += 1
+        self.rays += len(moving) + len(fixed)
+        return found
 
     def travel_from(self, pose: Pose, limit_m: float, known_free: bool = False) -> float | None:
         """The travel along Δ from `pose` to the first contact (inf: none within
