@@ -2,7 +2,7 @@
 
 Rest is a local maximum of the travel s: how far the body goes along the push Δ before it
 touches, as a function of the lateral state (slides across Δ and a spin about an axis
-parallel to Δ). The climb is a steepest ascent of s over that state, in four named steps
+parallel to Δ). The climb is a steepest ascent of s over that state, in five named steps
 over a small state object (`_Climb`):
 
 - `choose`: the contacts at the current pose are grouped into patches (one mean point
@@ -16,6 +16,11 @@ over a small state object (`_Climb`):
   secant estimate of the crest when the slope changes sign (D3), so a shallow slope is
   followed whatever the length of the climb and however little each step gains.
   A move that loses depth teaches the contacts that blocked it (D2).
+- `leap`: where ligaments act and the patches' model has no move left, the gap field of one
+  cast of rays (every near ray's gap along Δ and the normal it meets) models the travel
+  over a small lateral move; the model's best move within a trust radius is measured like
+  any move, and repeated from there while the field promises a gain the
+  proof could see (D8).
 - `prove`: when the contacts balance (or no move of the finest size is left), probes in
   26 directions (slides, spins and their combinations) at three scales, from the finest
   move to 16 times it (and a quarter of it first where ligaments press the body on hard),
@@ -69,7 +74,7 @@ class _Outcome:
 
 @dataclass(slots=True, eq=False)
 class _Climb:
-    """The state of one climb and its four steps."""
+    """The state of one climb and its five steps."""
 
     search: Search
     tuning: SettleTuning
@@ -170,7 +175,7 @@ class _Climb:
         """The longest move along `direction` (up to `length`) that stays inside."""
         return self.search.limit_to_envelope(self.pose, self.arm, direction, length)
 
-    # ---- the four steps ---------------------------------------------------------------
+    # ---- the steps ---------------------------------------------------------------------
     def choose(self) -> tuple[Floats, float] | None:
         """The steepest admissible move (unit direction, slope), or None when balanced.
 
@@ -363,6 +368,64 @@ class _Climb:
             return 1.0
         return min(max(slope / (slope - new_slope), self.tuning.crest_floor), 1.0)
 
+    def leap(self) -> End | None:
+        """D8: where the patches' model has no move left, climb on the gap field before the
+        proof. One cast (`RayPair.gaps`) gives every near ray's gap g_k and the normal of
+        the face it enters, so the travel after a lateral move x is min_k (g_k + a_k . x)
+        to first order, and the objective's change press dt + drive . x
+        (`Objective.first_order`): the best move within a trust radius is searched on that
+        model (`_best_move`). python-fcl measures each move as `move` does (contact from the
+        model's travel, to `measure` of its promise); a move that keeps `promise` of it is
+        taken and the field cast again there, the radius growing or shrinking with how well
+        the promise was kept. The leap ends when the field promises less than the proof's
+        lift, at the first move that keeps less than `promise`, or after `leap_casts`
+        casts. Only smooth objectives leap: their rests lie in creases narrower than the
+        finest move, where the patches' mean normals promise slopes the surfaces do not
+        have and the climb would creep by one proof's lift at a time (docs/design.md).
+        The end when the climb must stop there, else None: the proof follows."""
+        s, t, objective = self.search, self.tuning, self.objective
+        if s.rays is None or not objective.smooth:      # never the travel
+            return None
+        lift, res = self.proof_lift, s.params.resolution_m
+        radius, longest = t.leap_moves * self.finest, t.max_move_steps * s.params.step_m
+        floor_tol = t.finest_tol_res * res
+        moved = False
+        for _ in range(t.leap_casts):
+            gaps, slopes = self._gap_field(t.leap_window_res * res)
+            if len(gaps) == 0:
+                break
+            press, drive = objective.first_order(self.pose)
+            x, travel, promised = _best_move(gaps, slopes, press, drive, radius, s.free)
+            if promised < lift:
+                break                                  # nothing the proof could see
+            length = float(np.linalg.norm(x))
+            x = x * (self._room(x / length, length) / length)
+            tau = min(self.tol, max(t.measure * promised / self._pressed(), floor_tol))
+            bracket = s.touch(s.lateral(self.pose, x, self.arm), travel, tau)
+            kept = -math.inf if bracket is None else \
+                objective.value(bracket.free) - objective.value(self.pose)
+            if bracket is None or kept < t.promise * promised:
+                break                                  # the field misled: the proof decides
+            self.pose, self.touching, moved = bracket.free, bracket.touching, True
+            radius = min(2.0 * radius, longest) if kept >= t.leap_grow_share * promised \
+                else max(0.5 * radius, t.leap_min_moves * self.finest)
+        if not moved:
+            return None
+        return self._arrive(Bracket(self.pose, self.touching), self._floor_at(self.pose))
+
+    def _gap_field(self, within: float) -> tuple[Floats, Floats]:
+        """The gaps (k,) of the rays entering the other body within `within` at the current
+        pose, and each gap's gradient (k, 3) over (slide e1, slide e2, arc): a point of the
+        moving body moved by dp changes a gap to the face of normal n by -n . dp / n . Δ."""
+        s = self.search
+        assert s.rays is not None
+        gaps, normals, points = s.rays.gaps(self.pose, within)
+        lever = np.cross(s.push, points - s.centre(self.pose)) / self.arm
+        slopes = -np.stack([normals @ s.e1, normals @ s.e2,
+                            np.einsum('ij,ij->i', normals, lever)], 1) \
+            / (normals @ s.push)[:, None]
+        return gaps, slopes * s.free
+
     def prove(self) -> _Outcome | None:
         """D5: probe around the pose; the outcome when a probe gained (it was followed, or
         the climb ended), None at rest."""
@@ -492,7 +555,14 @@ def run_climb(search: Search, bracket: Bracket, tissue: Tissue | None = None,
         chosen = climb.choose() if climb.has_step else None
         if chosen is None:
             chosen = climb.resume()
-        outcome = climb.move(*chosen) if chosen is not None else climb.prove()
+        outcome: _Outcome | None
+        if chosen is not None:
+            outcome = climb.move(*chosen)
+        else:
+            end = climb.leap()
+            if end is not None:
+                break
+            outcome = climb.prove()
         if outcome is None:
             end = _at_rest(search, climb)
         else:
@@ -515,3 +585,38 @@ def _at_rest(search: Search, climb: _Climb) -> End:
                 f'the envelope gains more than the resolution {gain}')
     return (Status.REST, 'rest: no slide, spin about the push or combination, short or '
             f'long, gains more than the resolution {gain}')
+
+
+# The leap's search of the gap field's model: a grid of 5 moves a coordinate across the
+# trust box, then a pattern search about the best (26 neighbours, the step halved each time).
+_GRID = np.array(list(itertools.product(np.linspace(-1.0, 1.0, 5), repeat=3)))
+_NEIGHBOURS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)])
+_REFINE = 6
+
+
+def _best_move(gaps: Floats, slopes: Floats, press: float, drive: Floats, radius: float,
+               free: Floats) -> tuple[Floats, float, float]:
+    """The move x (3,) within `radius` of no move in every free coordinate that the gap
+    field says gains most, press min_k (g_k + a_k . x) + drive . x less its value at no
+    move: searched on the model (`_GRID`, then `_REFINE` halvings of a pattern search), so
+    the move is the model's best to a 64th of the radius; with the travel min_k there and
+    the gain it promises."""
+    low = float(np.min(gaps))
+
+    def model(moves: Floats) -> tuple[Floats, Floats]:
+        travel = np.min(gaps[None, :] + moves @ slopes.T, axis=1)
+        return press * (travel - low) + moves @ drive, travel
+
+    moves = _GRID * (radius * free)
+    gains, travels = model(moves)
+    k = int(np.argmax(gains))
+    x, gain, travel = moves[k], float(gains[k]), float(travels[k])
+    step = 0.25 * radius
+    for _ in range(_REFINE):
+        near = np.clip(x + _NEIGHBOURS * (step * free), -radius, radius)
+        gains, travels = model(near)
+        k = int(np.argmax(gains))
+        if gains[k] > gain:
+            x, gain, travel = near[k], float(gains[k]), float(travels[k])
+        step *= 0.5
+    return x, travel, gain

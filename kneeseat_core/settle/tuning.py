@@ -49,6 +49,15 @@ class SettleTuning:
     Balance (D1b):
         crest_flat: a patch whose depth gradient is at most this many flat slopes sits at
             its own crest.
+    Leap on the gap field (D8):
+        leap_window_res: the gap field holds the rays that enter the other body within
+            this many resolutions.
+        leap_moves: the first trust radius of a leap (finest moves, per coordinate);
+        leap_grow_share: it doubles after a move that kept this share of its promise (up
+            to the longest move) and halves after one that kept less, down to...
+        leap_min_moves: ...this radius. A move that keeps less than `promise` ends the
+            leap, as does a field that promises less than the proof's lift, or...
+        leap_casts: ...this many casts.
     Proof of rest (D5):
         probe_scales_moves: probe lengths.
         pressed_from: where the objective presses the body on at least this many times
@@ -86,6 +95,11 @@ class SettleTuning:
     crest_floor: float = 0.25
     blocked_cap: float = 0.5
     crest_flat: float = 2.0
+    leap_window_res: float = 3.0
+    leap_moves: float = 2.0
+    leap_grow_share: float = 0.75
+    leap_min_moves: float = 0.125
+    leap_casts: int = 32
     probe_scales_moves: tuple[float, ...] = (1.0, 4.0, 16.0)
     pressed_from: float = 8.0
     pressed_probe_moves: float = 0.25
