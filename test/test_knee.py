@@ -16,6 +16,7 @@ The full-grid tests (`slow`) build the patent grid once per module with 2 worker
 from __future__ import annotations
 
 from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 import json
 import math
@@ -31,7 +32,7 @@ from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_angle
 from kneeseat_core.knee import BodySpec, KneeConfig, load_config
 from kneeseat_core.settle import settle
 from kneeseat_core.sweep import warm_start
-from kneeseat_core.referee import Referee
+from kneeseat_core.referee import Referee, verify_table
 from kneeseat_core.table import PoseTable, read_table, write_table
 from kneeseat_core.typed import Floats
 
@@ -214,7 +215,7 @@ def test_full_grid_sampled_cells_are_at_rest(full: Knee, tmp_path: Path,
 
 
 @pytest.mark.slow
-def test_full_grid_screw_home(full: Knee) -> None:
+def test_full_grid_screw_home(full: Knee, tmp_path: Path) -> None:
     table = full.table
     spin, off_axis = spin_deg(full.config, table, table.bodies.index('tibia'))
     assert off_axis.max() < 1e-6
@@ -228,8 +229,31 @@ def test_full_grid_screw_home(full: Knee) -> None:
     # (2.0 deg at varus 10)
     assert ranges[centre] > 4.0 and ranges.min() > 1.5
     # internal rotation grows with flexion, monotonic to within 0.2 deg (how closely the
-    # contacts hold the spin at the patent's resolution)
-    assert np.all(np.diff(spin[:, centre]) <= 0.2), 'the spin at varus 0 is not monotonic'
+    # contacts hold the spin at the patent's resolution) wherever the rests hold it that
+    # closely: where the spin steps back by more (a few flexion values at most), the
+    # referee must find both rests of the step determined no better than the step, their
+    # extent (how far each can spin while the objective stays within one resolution of
+    # the best) at least as wide
+    steps = np.diff(spin[:, centre])
+    back = np.flatnonzero(steps > 0.2)
+    assert len(back) <= 3, f'the spin at varus 0 steps back at {len(back)} flexion values'
+    if len(back) == 0:
+        return
+    path = tmp_path / 'default_knee.npz'
+    write_table(path, table)
+    tibia = table.bodies.index('tibia')
+    cells = sorted({(tibia, int(i) + k, centre) for i in back for k in (0, 1)})
+    with ProcessPoolExecutor(2) as pool:
+        verdicts = list(verify_table(path, cells, pool))
+    flexion_deg = np.degrees(table.flexion_rad)
+    for i in back:
+        for k in (0, 1):
+            verdict = min(verdicts, key=lambda v: abs(v.flexion_deg - flexion_deg[i + k]))
+            assert verdict.converged and verdict.extent_deg is not None
+            assert verdict.extent_deg >= steps[i], \
+                (f'the spin steps back {steps[i]:.3f} deg at flexion {flexion_deg[i]:g}, '
+                 f'where the rest at {verdict.flexion_deg:g} holds it to '
+                 f'{verdict.extent_deg:.3f} deg')
 
 
 @dataclass(frozen=True, slots=True)
