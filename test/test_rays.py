@@ -160,14 +160,21 @@ def test_an_unknown_travel_is_refused() -> None:
         SettleParams(travel='lasers').check()   # type: ignore[arg-type]
 
 
-@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
-def test_travel_matches_python_fcl_on_the_total_knee() -> None:
+def total_knee(seed: int) -> tuple[RigidBody, RigidBody, np.ndarray, list[np.ndarray]]:
+    """The femoral component, the insert, the push (+Y) and 6 seeded poses of the insert
+    2 mm below its delivered pose, slid up to 2 mm and spun up to 4 deg."""
     fixed = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'femoral_component.stl', 'm'))
     moving = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'tibial_insert.stl', 'm'))
     push = np.array([0.0, 1.0, 0.0])
     start = pose_from(np.eye(3), np.array([0.0, -2e-3, 0.0]))
-    poses = lateral_poses(start, push, moving.centroid, seed=5, n=6, slide_m=2e-3,
+    poses = lateral_poses(start, push, moving.centroid, seed=seed, n=6, slide_m=2e-3,
                           spin_deg=4.0)
+    return fixed, moving, push, poses
+
+
+@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
+def test_travel_matches_python_fcl_on_the_total_knee() -> None:
+    fixed, moving, push, poses = total_knee(seed=5)
     check_agreement(fixed, moving, poses, push)
 
 
@@ -218,12 +225,7 @@ def test_the_gap_field_is_python_fcl_travel_on_the_analytic_scenes(name: str) ->
 
 @pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
 def test_the_gap_field_is_python_fcl_travel_on_the_total_knee() -> None:
-    fixed = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'femoral_component.stl', 'm'))
-    moving = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'tibial_insert.stl', 'm'))
-    push = np.array([0.0, 1.0, 0.0])
-    start = pose_from(np.eye(3), np.array([0.0, -2e-3, 0.0]))
-    poses = lateral_poses(start, push, moving.centroid, seed=6, n=6, slide_m=2e-3,
-                          spin_deg=4.0)
+    fixed, moving, push, poses = total_knee(seed=6)
     check_gap_field(fixed, moving, poses, push, slide_m=None)
 
 

@@ -216,11 +216,10 @@ class _NearSet:
 
 # The last near set of each pair of bodies, kept while both live: the settles of a table's
 # neighbouring cells start where the last one ended.
-_NEAR_SETS: weakref.WeakKeyDictionary[RigidBody, weakref.WeakKeyDictionary[RigidBody, _NearSet]] \
-    = weakref.WeakKeyDictionary()
+_PairSets = weakref.WeakKeyDictionary[RigidBody, weakref.WeakKeyDictionary[RigidBody, _NearSet]]
+_NEAR_SETS: _PairSets = weakref.WeakKeyDictionary()
 # The same for the gap field's vertices (`RayPair.gaps`).
-_GAP_SETS: weakref.WeakKeyDictionary[RigidBody, weakref.WeakKeyDictionary[RigidBody, _NearSet]] \
-    = weakref.WeakKeyDictionary()
+_GAP_SETS: _PairSets = weakref.WeakKeyDictionary()
 
 
 @dataclass(slots=True, eq=False)
@@ -257,8 +256,17 @@ class RayPair:
     # ---- the near set -------------------------------------------------------------------
     @property
     def _near(self) -> _NearSet | None:
-        found = _NEAR_SETS.get(self.pair.moving)
+        return self._kept(_NEAR_SETS)
+
+    def _kept(self, sets: _PairSets) -> _NearSet | None:
+        """The set `sets` keeps for this pair of bodies, if any."""
+        found = sets.get(self.pair.moving)
         return None if found is None else found.get(self.pair.fixed)
+
+    def _keep(self, sets: _PairSets, found: _NearSet) -> _NearSet:
+        """Keep `found` in `sets` for this pair of bodies (for the next settles)."""
+        sets.setdefault(self.pair.moving, weakref.WeakKeyDictionary())[self.pair.fixed] = found
+        return found
 
     def _draw(self, pose: Pose) -> _NearSet:
         """Draw the near set at `pose` (the vertices left out are at least the margin from
@@ -268,11 +276,9 @@ class RayPair:
         keep_m, bound_m = self._fixed.near(moving @ rot.T + t, self.margin_m)
         fixed = self.pair.fixed.vertices
         keep_f, bound_f = self._moving.near((fixed - t) @ rot, self.margin_m)
-        near = _NearSet(pose.copy(), moving[keep_m], bound_m, fixed[keep_f], bound_f)
-        _NEAR_SETS.setdefault(self.pair.moving, weakref.WeakKeyDictionary())[
-            self.pair.fixed] = near
         self.draws += 1
-        return near
+        return self._keep(_NEAR_SETS, _NearSet(pose.copy(), moving[keep_m], bound_m,
+                                               fixed[keep_f], bound_f))
 
     def _moved(self, near: _NearSet | None, pose: Pose) -> float:
         """How far any point of the moving body may have moved since `near` was drawn (its
@@ -349,8 +355,7 @@ class RayPair:
         they were last drawn (`_gap_draw`: one cast from every vertex, drawn again where
         the body has moved by half the margin since); a vertex left out may have come
         nearer on a steep slope, and python-fcl judges every pose the field proposes."""
-        pairs = _GAP_SETS.get(self.pair.moving)
-        found = None if pairs is None else pairs.get(self.pair.fixed)
+        found = self._kept(_GAP_SETS)
         if found is None or self._moved(found, pose) > 0.5 * self.margin_m:
             found = self._gap_draw(pose)
         rot, t = pose[:3, :3], pose[:3, 3]
@@ -374,17 +379,15 @@ class RayPair:
         margin at `pose` (bounds: their gaps then), kept for the next settles of the pair."""
         rot, t = pose[:3, :3], pose[:3, 3]
         moving, fixed = self.pair.moving.vertices, self.pair.fixed.vertices
-        reach = np.full(len(moving), self.margin_m)
-        d1, _ = self._fixed.first_hits(moving @ rot.T + t, self.push, reach)
+        d1, _ = self._fixed.first_hits(moving @ rot.T + t, self.push,
+                                       np.full(len(moving), self.margin_m))
         d2, _ = self._moving.first_hits((fixed - t) @ rot, -(rot.T @ self.push),
                                         np.full(len(fixed), self.margin_m))
         near1, near2 = d1 < self.margin_m, d2 < self.margin_m
-        found = _NearSet(pose.copy(), moving[near1], d1[near1], fixed[near2], d2[near2])
-        _GAP_SETS.setdefault(self.pair.moving, weakref.WeakKeyDictionary())[
-            self.pair.fixed] = found
         self.casts += 1
         self.rays += len(moving) + len(fixed)
-        return found
+        return self._keep(_GAP_SETS, _NearSet(pose.copy(), moving[near1], d1[near1],
+                                              fixed[near2], d2[near2]))
 
     def travel_from(self, pose: Pose, limit_m: float, known_free: bool = False) -> float | None:
         """The travel along Δ from `pose` to the first contact (inf: none within

@@ -8,7 +8,7 @@ along chains of three kinds:
    segments of `SPINE_SEGMENT` cells (each segment from the rest the last one ended on);
 3. a *rib* per (body, flexion value, side): the varus values settled outward from the spine
    cell, each from its neighbour's equilibrium.
-A chain runs as soon as what it starts from is settled (`_Sweep.ready`): a rib as soon as
+A chain runs as soon as the cells it starts from are settled (`sweep`): a rib as soon as
 its spine cell, the next spine segment as soon as the last one, so the ribs of the first
 flexion values keep every worker busy while the spine goes on, and no phase waits for
 another. Chains run on any `concurrent.futures.Executor`
@@ -37,7 +37,6 @@ from __future__ import annotations
 
 from concurrent.futures import Executor, FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
-import heapq
 import math
 from pathlib import Path
 import time
@@ -106,7 +105,7 @@ def sweep(config: KneeConfig, executor: Executor,
     run = _Sweep(config, progress)
     chains = run.chains()
     # each chain waits for the cells it starts from; a settled cell frees its waiters
-    missing = [sum(not run.settled[c] for c in chain.after) for chain in chains]
+    missing = [len(chain.after) for chain in chains]
     waiters: dict[Cell, list[int]] = {}
     for k, chain in enumerate(chains):
         for cell in chain.after:
@@ -114,10 +113,9 @@ def sweep(config: KneeConfig, executor: Executor,
     ready = [k for k, n in enumerate(missing) if n == 0]
     running: dict[Future[ChainResult], int] = {}
     while ready or running:
-        heapq.heapify(ready)              # the chains listed first go first
-        while ready:
-            k = heapq.heappop(ready)
+        for k in sorted(ready):           # the chains listed first go first
             running[executor.submit(run_chain, run.job_for(chains[k]))] = k
+        ready.clear()
         finished, _ = wait(running, return_when=FIRST_COMPLETED)
         for future in finished:
             del running[future]
@@ -161,7 +159,6 @@ class _Sweep:
         self.iterations = np.zeros((nb, nf, nv), dtype=np.int64)
         self.status = np.full((nb, nf, nv), Status.FAILED, dtype=np.int8)
         self.backed = np.zeros((nb, nf, nv))
-        self.settled = np.zeros((nb, nf, nv), dtype=bool)   # the cell's result is in
         self.failures: list[str] = []
         self.checks = 0
         self.casts = 0
@@ -281,8 +278,6 @@ class _Sweep:
                 settled.extend((b, f, w) for w in range(nv))
             else:
                 settled.append((b, f, v))
-        for cell in settled:
-            self.settled[cell] = True
         self.checks += res.collision_checks
         self.casts += res.ray_casts
         if self.progress:                 # a copy across varus is cells of the table too
