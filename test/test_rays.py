@@ -98,11 +98,8 @@ def check_agreement(fixed: RigidBody, moving: RigidBody, poses: list[np.ndarray]
 
 @pytest.mark.parametrize('name', sc.SCENES)
 def test_travel_matches_python_fcl_on_the_analytic_scenes(name: str) -> None:
-    var = sc.variant(name, 'rotated')
-    push = var.push / np.linalg.norm(var.push)
-    centre = var.start[:3, :3] @ var.moving.centroid + var.start[:3, 3]
-    poses = lateral_poses(var.start, push, centre, seed=3, n=8, slide_m=3e-3, spin_deg=8.0)
-    check_agreement(var.fixed, var.moving, poses, push)
+    fixed, moving, push, poses = analytic_scene(name, seed=3, n=8)
+    check_agreement(fixed, moving, poses, push)
 
 
 def test_the_near_set_is_drawn_again_when_the_body_has_moved() -> None:
@@ -158,6 +155,18 @@ def test_settle_by_rays_meets_the_analytic_rest() -> None:
 def test_an_unknown_travel_is_refused() -> None:
     with pytest.raises(SettleError, match='travel'):
         SettleParams(travel='lasers').check()   # type: ignore[arg-type]
+
+
+def analytic_scene(name: str, seed: int, n: int
+                   ) -> tuple[RigidBody, RigidBody, np.ndarray, list[np.ndarray]]:
+    """The analytic scene `name` (rotated variant): its bodies, its unit push and `n`
+    seeded poses about its start, slid up to 3 mm and spun up to 8 deg."""
+    var = sc.variant(name, 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    centre = var.start[:3, :3] @ var.moving.centroid + var.start[:3, 3]
+    poses = lateral_poses(var.start, push, centre, seed=seed, n=n, slide_m=3e-3,
+                          spin_deg=8.0)
+    return var.fixed, var.moving, push, poses
 
 
 def total_knee(seed: int) -> tuple[RigidBody, RigidBody, np.ndarray, list[np.ndarray]]:
@@ -216,11 +225,8 @@ def check_gap_field(fixed: RigidBody, moving: RigidBody, poses: list[np.ndarray]
 
 @pytest.mark.parametrize('name', sc.SCENES)
 def test_the_gap_field_is_python_fcl_travel_on_the_analytic_scenes(name: str) -> None:
-    var = sc.variant(name, 'rotated')
-    push = var.push / np.linalg.norm(var.push)
-    centre = var.start[:3, :3] @ var.moving.centroid + var.start[:3, 3]
-    poses = lateral_poses(var.start, push, centre, seed=4, n=6, slide_m=3e-3, spin_deg=8.0)
-    check_gap_field(var.fixed, var.moving, poses, push, slide_m=1e-5)
+    fixed, moving, push, poses = analytic_scene(name, seed=4, n=6)
+    check_gap_field(fixed, moving, poses, push, slide_m=1e-5)
 
 
 @pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')

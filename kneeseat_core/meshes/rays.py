@@ -358,36 +358,41 @@ class RayPair:
         found = self._kept(_GAP_SETS)
         if found is None or self._moved(found, pose) > 0.5 * self.margin_m:
             found = self._gap_draw(pose)
-        rot, t = pose[:3, :3], pose[:3, 3]
-        up = found.moving @ rot.T + t
-        d1, p1 = self._fixed.first_hits(up, self.push, np.full(len(up), within_m))
+        (up, d1, p1), (down_dir, d2, p2) = self._cast_both(pose, found.moving, found.fixed,
+                                                           within_m)
         n1 = self._fixed.face_normals[np.maximum(p1, 0)]
         in1 = (p1 >= 0) & (d1 < within_m) & (n1 @ self.push < 0.0)
-        down_dir = -(rot.T @ self.push)
-        d2, p2 = self._moving.first_hits((found.fixed - t) @ rot, down_dir,
-                                         np.full(len(found.fixed), within_m))
         n2 = self._moving.face_normals[np.maximum(p2, 0)]
         in2 = (p2 >= 0) & (d2 < within_m) & (n2 @ down_dir < 0.0)
-        self.casts += 1
-        self.rays += len(up) + len(found.fixed)
         return (np.concatenate([d1[in1], d2[in2]]),
-                np.concatenate([n1[in1], n2[in2] @ rot.T]),
+                np.concatenate([n1[in1], n2[in2] @ pose[:3, :3].T]),
                 np.concatenate([up[in1], found.fixed[in2] - d2[in2, None] * self.push]))
 
     def _gap_draw(self, pose: Pose) -> _NearSet:
         """The vertices of both bodies whose rays along ±Δ enter the other body within the
         margin at `pose` (bounds: their gaps then), kept for the next settles of the pair."""
-        rot, t = pose[:3, :3], pose[:3, 3]
         moving, fixed = self.pair.moving.vertices, self.pair.fixed.vertices
-        d1, _ = self._fixed.first_hits(moving @ rot.T + t, self.push,
-                                       np.full(len(moving), self.margin_m))
-        d2, _ = self._moving.first_hits((fixed - t) @ rot, -(rot.T @ self.push),
-                                        np.full(len(fixed), self.margin_m))
+        (_, d1, _), (_, d2, _) = self._cast_both(pose, moving, fixed, self.margin_m)
         near1, near2 = d1 < self.margin_m, d2 < self.margin_m
-        self.casts += 1
-        self.rays += len(moving) + len(fixed)
         return self._keep(_GAP_SETS, _NearSet(pose.copy(), moving[near1], d1[near1],
                                               fixed[near2], d2[near2]))
+
+    def _cast_both(self, pose: Pose, moving: Floats, fixed: Floats, reach_m: float
+                   ) -> tuple[tuple[Floats, Floats, Ints], tuple[Floats, Floats, Ints]]:
+        """One cast at `pose`, no ray longer than `reach_m`: along +Δ from the points
+        `moving` (the moving body's frame) onto the fixed body, and along -Δ from the points
+        `fixed` onto the moving body (in its frame). Returns (the rays' origins, fixed
+        frame; distances; primitives hit, -1 for none) for the first, and (the ray
+        direction in the moving frame; distances; primitives) for the second."""
+        rot, t = pose[:3, :3], pose[:3, 3]
+        up = moving @ rot.T + t
+        d1, p1 = self._fixed.first_hits(up, self.push, np.full(len(up), reach_m))
+        down_dir = -(rot.T @ self.push)
+        d2, p2 = self._moving.first_hits((fixed - t) @ rot, down_dir,
+                                         np.full(len(fixed), reach_m))
+        self.casts += 1
+        self.rays += len(up) + len(fixed)
+        return (up, d1, p1), (down_dir, d2, p2)
 
     def travel_from(self, pose: Pose, limit_m: float, known_free: bool = False) -> float | None:
         """The travel along Δ from `pose` to the first contact (inf: none within

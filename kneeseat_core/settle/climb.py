@@ -256,7 +256,7 @@ class _Climb:
         if self.objective.smooth and promised < self.proof_lift:
             return _Outcome(0.0)                       # the proof's to find (Objective.smooth)
         floor_tol = t.finest_tol_res * s.params.resolution_m
-        tau = min(self.tol, max(t.measure * promised / self._pressed(), floor_tol))
+        tau = self._measuring(promised)
         width = self._narrow(tau)
         target = s.lateral(self.pose, length * direction, self.arm)
         measured = promised >= t.measurable * floor_tol
@@ -323,6 +323,13 @@ class _Climb:
         gain a move must show (1 for the travel: its bits unchanged)."""
         return max(1.0, self.objective.pressing(self.pose))
 
+    def _measuring(self, promised: float) -> float:
+        """The contact tolerance (m) that measures a move promising `promised`: `measure` of
+        it in travel along Δ, between the finest tolerance and the contact tolerance."""
+        t = self.tuning
+        return min(self.tol, max(t.measure * promised / self._pressed(),
+                                 t.finest_tol_res * self.search.params.resolution_m))
+
     def _gap(self) -> float:
         """How far the current pose is from touching along Δ (m): its bracket's width."""
         return self.search.depth(self.touching) - self.search.depth(self.pose)
@@ -388,7 +395,6 @@ class _Climb:
             return None
         lift, res = self.proof_lift, s.params.resolution_m
         radius, longest = t.leap_moves * self.finest, t.max_move_steps * s.params.step_m
-        floor_tol = t.finest_tol_res * res
         moved = False
         for _ in range(t.leap_casts):
             gaps, slopes = self._gap_field(t.leap_window_res * res)
@@ -400,11 +406,12 @@ class _Climb:
                 break                                  # nothing the proof could see
             length = float(np.linalg.norm(x))
             x = x * (self._room(x / length, length) / length)
-            tau = min(self.tol, max(t.measure * promised / self._pressed(), floor_tol))
-            bracket = s.touch(s.lateral(self.pose, x, self.arm), travel, tau)
-            kept = -math.inf if bracket is None else \
-                objective.value(bracket.free) - objective.value(self.pose)
-            if bracket is None or kept < t.promise * promised:
+            bracket = s.touch(s.lateral(self.pose, x, self.arm), travel,
+                              self._measuring(promised))
+            if bracket is None:
+                break
+            kept = objective.value(bracket.free) - objective.value(self.pose)
+            if kept < t.promise * promised:
                 break                                  # the field misled: the proof decides
             self.pose, self.touching, moved = bracket.free, bracket.touching, True
             radius = min(2.0 * radius, longest) if kept >= t.leap_grow_share * promised \
