@@ -235,6 +235,51 @@ def test_the_gap_field_is_python_fcl_travel_on_the_total_knee() -> None:
     check_gap_field(fixed, moving, poses, push, slide_m=None)
 
 
+def check_near_set(body: RigidBody, seed: int, within_m: float, n: int = 3000) -> None:
+    """The near set's distance bounds against trimesh's exact closest point on the
+    triangles: `n` seeded points about the body (a third anywhere in its padded box, two
+    thirds within twice `within_m` of its surface) asked in one call and again in a
+    shuffled order by chunks of a fresh body's grid; every point truly within `within_m` is
+    in the set, every bound is at most the true distance, and both orders give the same
+    set and bounds (the answer does not depend on which cubes earlier calls filled)."""
+    import trimesh
+    from kneeseat_core.meshes.rays import RayBody
+    rng = np.random.default_rng(seed)
+    low, high = body.vertices.min(axis=0) - 5e-3, body.vertices.max(axis=0) + 5e-3
+    anywhere = rng.uniform(low, high, size=(n // 3, 3))
+    on, face = trimesh.sample.sample_surface(body.mesh, n - n // 3, seed=seed)
+    close = on + body.mesh.face_normals[face] * rng.uniform(-2, 2, (len(on), 1)) * within_m
+    points = np.vstack([anywhere, close])
+    _, true, _ = trimesh.proximity.closest_point(body.mesh, points)
+    idx, bound = RayBody(body).near(points, within_m)
+    assert np.all(np.diff(idx) > 0)
+    truly = set(np.flatnonzero(true < within_m).tolist())
+    assert len(truly) > n // 6, 'the scene puts points near the surface'
+    assert truly <= set(idx.tolist()), f'{len(truly - set(idx.tolist()))} near points left out'
+    assert np.all(bound <= true[idx] + 1e-9), float((bound - true[idx]).max())
+    assert np.all(bound >= 0.0)
+    order = rng.permutation(len(points))
+    again = RayBody(body)
+    found: dict[int, float] = {}
+    for chunk in np.array_split(order, 7):
+        sub, sub_bound = again.near(points[chunk], within_m)
+        found.update(zip(chunk[sub].tolist(), sub_bound.tolist()))
+    assert sorted(found) == idx.tolist()
+    assert np.array_equal(np.array([found[i] for i in idx.tolist()]), bound)
+
+
+def test_the_near_set_holds_every_point_near_the_surface() -> None:
+    check_near_set(sc.variant('sphere_cone', 'rotated').moving, seed=11, within_m=2e-3,
+                   n=1200)
+
+
+@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
+def test_the_near_set_holds_every_point_near_the_total_knee() -> None:
+    fixed, moving, _, _ = total_knee(seed=12)
+    check_near_set(moving, seed=12, within_m=1.5e-3)
+    check_near_set(fixed, seed=13, within_m=4e-3)
+
+
 @pytest.mark.skipif(not (SHARED / 'natural_knee').is_dir(),
                     reason='no shared natural knee data')
 def test_travel_matches_python_fcl_on_open_cartilage_sheets() -> None:

@@ -10,8 +10,9 @@ python-fcl stays the judge where that matters (a start in collision, the settle'
 pose, the referee).
 
 `RayBody` is one mesh's Embree scene, built once per body and process, and for the near
-set the samples of its surface in a k-d tree and a grid of distance bounds filled as it is
-asked (built when first needed). `RayPair` answers for one settle. `blocked`: whether
+set the samples of its surface in a k-d tree and two grids of distance bounds, a coarse
+one asked first and a fine one where it leaves a point near, filled as they are asked
+(built when first needed). `RayPair` answers for one settle. `blocked`: whether
 probes, each lifted along Δ, are in collision as given vertices see them (the proof of
 rest asks it before python-fcl; a ray entering the other body short of the lift is a real
 contact, so a probe it blocks is blocked; one it does not is left to python-fcl). `gaps`:
@@ -34,6 +35,7 @@ import math
 import weakref
 
 import numpy as np
+from numpy.typing import NDArray
 import trimesh
 
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
@@ -52,6 +54,8 @@ _SAMPLE_EDGE_M = 5e-4
 # fall in them, out to this far from its bounding box (beyond: not near).
 _CELL_M = 5e-4
 _MAX_CELLS = 8_000_000
+# The coarse grid's cubes are this many fine cubes wide (`_DistanceGrid`).
+_COARSE = 4
 _PAD_M = 8e-3
 # A hit distance is trusted to this (m): the scenes are float32 about each body's centre,
 # whose rounding at a knee's size is a few nanometres.
@@ -106,8 +110,11 @@ class RayBody:
 
 
 class _DistanceGrid:
-    """Lower bounds on the distance to one body's surface, on a grid of cubes about it
-    filled as points fall in them, from a k-d tree of points sampling the surface."""
+    """Lower bounds on the distance to one body's surface, on grids of cubes about it
+    filled as points fall in them, from a k-d tree of points sampling the surface: a
+    coarse grid first, whose cubes are `_COARSE` fine cubes wide, and the fine grid only
+    for the points the coarse bound leaves near (most of a body is far from the other, and
+    a fine cube costs a k-d tree query as a coarse one does)."""
 
     def __init__(self, body: RigidBody) -> None:
         from scipy.spatial import cKDTree
@@ -119,37 +126,61 @@ class _DistanceGrid:
         self.pad_m = _PAD_M + self.spacing_m
         self.low = body.vertices.min(axis=0) - self.pad_m
         extent = body.vertices.max(axis=0) + self.pad_m - self.low
-        self.cell_m = max(_CELL_M, float(np.prod(extent) / _MAX_CELLS) ** (1.0 / 3.0))
-        self.cell_reach_m = 0.5 * math.sqrt(3.0) * self.cell_m   # a point from its centre
-        self.shape = tuple(int(n) for n in np.ceil(extent / self.cell_m))
-        # per cube: a lower bound on the distance from any point in it to the surface
-        # (m; NaN: not known yet)
-        self.cells = np.full(int(np.prod(self.shape)), np.nan, dtype=np.float32)
+        cell_m = max(_CELL_M, float(np.prod(extent) / _MAX_CELLS) ** (1.0 / 3.0))
+        self.fine = _Cubes(cell_m, extent)
+        self.coarse = _Cubes(_COARSE * cell_m, extent)
 
     def near(self, points: Floats, within: float) -> tuple[Ints, Floats]:
         """The indices of `points` (k, 3), body frame, that may lie within `within` m of
         the surface, and a lower bound on each one's distance from it (m): from the cube
         it lies in, the distance of the cube's centre to the nearest sample less the
-        samples' spacing and the cube's half diagonal."""
-        if within > self.pad_m - self.spacing_m - self.cell_reach_m:
+        samples' spacing and the cube's half diagonal; the larger of the coarse and the
+        fine cube's bound where the coarse one is under `within` (the answer does not
+        depend on which cubes earlier calls filled)."""
+        if within > self.pad_m - self.spacing_m - self.fine.reach_m:
             raise ValueError(f'a near set {within} m wide is wider than the distance grid')
-        ijk = np.floor((points - self.low) / self.cell_m).astype(np.int64)
-        shape = np.array(self.shape)
-        inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+        ijk = np.floor((points - self.low) / self.fine.cell_m).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < self.fine.shape), axis=1)
         idx = np.flatnonzero(inside)
-        flat = np.ravel_multi_index(ijk[idx].T, self.shape)
-        bound = self.cells[flat]
+        coarse = self.coarse.bounds(ijk[idx] // _COARSE, self)
+        keep = coarse < within
+        idx, coarse = idx[keep], coarse[keep]
+        bound = np.maximum(self.fine.bounds(ijk[idx], self), coarse)
+        near = bound < within
+        return idx[near], bound[near].astype(np.float64)
+
+    def fill(self, centres: Floats, reach_m: float) -> Floats:
+        """Lower bounds (m) on the distance to the surface from any point within `reach_m`
+        of each of `centres` (k, 3): the nearest sample's distance less the samples'
+        spacing and the reach (at least 0); infinite where that is beyond the padding less
+        the spacing, wider than any near set."""
+        dist, _ = self.tree.query(centres, k=1, distance_upper_bound=self.pad_m + reach_m)
+        return np.maximum(dist - self.spacing_m - reach_m, 0.0)
+
+
+class _Cubes:
+    """One grid of cubes over the distance grid's box, each with its bound (NaN: not known
+    yet)."""
+
+    def __init__(self, cell_m: float, extent: Floats) -> None:
+        self.cell_m = cell_m
+        self.reach_m = 0.5 * math.sqrt(3.0) * cell_m       # a point from the cube's centre
+        self.shape = tuple(int(n) for n in np.ceil(extent / cell_m))
+        self.cells = np.full(int(np.prod(self.shape)), np.nan, dtype=np.float32)
+
+    def bounds(self, ijk: Ints, grid: _DistanceGrid) -> NDArray[np.float32]:
+        """The bounds of the cubes `ijk` (k, 3) of the grid's box (float32, as kept),
+        filling the unknown ones from `grid`."""
+        flat: Ints = np.asarray(np.ravel_multi_index(tuple(ijk.T), self.shape))
+        bound: NDArray[np.float32] = self.cells[flat]
         unknown = np.isnan(bound)
         if unknown.any():
             cells = np.unique(flat[unknown])
             centres = (np.stack(np.unravel_index(cells, self.shape), axis=1) + 0.5) \
-                * self.cell_m + self.low
-            dist, _ = self.tree.query(centres, k=1,
-                                      distance_upper_bound=self.pad_m)
-            self.cells[cells] = np.maximum(dist - self.spacing_m - self.cell_reach_m, 0.0)
+                * self.cell_m + grid.low
+            self.cells[cells] = grid.fill(centres, self.reach_m)
             bound = self.cells[flat]
-        near = bound < within
-        return idx[near], bound[near].astype(np.float64)
+        return bound
 
 
 def _surface_samples(vertices: Floats, faces: Ints, longest: Floats,
