@@ -16,11 +16,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 from kneeseat_core.errors import SettleError
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.meshes import (CollisionPair, hidden_gap_m, load_mesh, load_meshes,
                                   RayPair, RigidBody)
+from kneeseat_core.meshes.rays import RayBody
 from kneeseat_core.settle import settle, SettleParams
 import settle_cases as sc
 
@@ -242,8 +244,6 @@ def check_near_set(body: RigidBody, seed: int, within_m: float, n: int = 3000) -
     shuffled order by chunks of a fresh body's grid; every point truly within `within_m` is
     in the set, every bound is at most the true distance, and both orders give the same
     set and bounds (the answer does not depend on which cubes earlier calls filled)."""
-    import trimesh
-    from kneeseat_core.meshes.rays import RayBody
     rng = np.random.default_rng(seed)
     low, high = body.vertices.min(axis=0) - 5e-3, body.vertices.max(axis=0) + 5e-3
     anywhere = rng.uniform(low, high, size=(n // 3, 3))

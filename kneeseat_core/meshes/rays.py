@@ -30,6 +30,7 @@ all (where a mesh is open, a pose not known free is asked of python-fcl first).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 import math
 import weakref
@@ -54,9 +55,9 @@ _SAMPLE_EDGE_M = 5e-4
 # fall in them, out to this far from its bounding box (beyond: not near).
 _CELL_M = 5e-4
 _MAX_CELLS = 8_000_000
+_PAD_M = 8e-3
 # The coarse grid's cubes are this many fine cubes wide (`_DistanceGrid`).
 _COARSE = 4
-_PAD_M = 8e-3
 # A hit distance is trusted to this (m): the scenes are float32 about each body's centre,
 # whose rounding at a knee's size is a few nanometres.
 _RAY_NOISE_M = 1e-7
@@ -65,7 +66,7 @@ _RAY_NOISE_M = 1e-7
 class RayBody:
     """One body's triangles as an Embree scene (float32, about the body's bound centre, so
     a nanometre is still resolved); for the near set, built when first asked, a k-d tree
-    of points sampling its surface and a grid of distance bounds (`near`)."""
+    of points sampling its surface and its grids of distance bounds (`near`)."""
 
     def __init__(self, body: RigidBody) -> None:
         from embreex import rtcore_scene
@@ -127,8 +128,8 @@ class _DistanceGrid:
         self.low = body.vertices.min(axis=0) - self.pad_m
         extent = body.vertices.max(axis=0) + self.pad_m - self.low
         cell_m = max(_CELL_M, float(np.prod(extent) / _MAX_CELLS) ** (1.0 / 3.0))
-        self.fine = _Cubes(cell_m, extent)
-        self.coarse = _Cubes(_COARSE * cell_m, extent)
+        self.fine = _Cubes(cell_m, self.low, extent, self.fill)
+        self.coarse = _Cubes(_COARSE * cell_m, self.low, extent, self.fill)
 
     def near(self, points: Floats, within: float) -> tuple[Ints, Floats]:
         """The indices of `points` (k, 3), body frame, that may lie within `within` m of
@@ -142,10 +143,10 @@ class _DistanceGrid:
         ijk = np.floor((points - self.low) / self.fine.cell_m).astype(np.int64)
         inside = np.all((ijk >= 0) & (ijk < self.fine.shape), axis=1)
         idx = np.flatnonzero(inside)
-        coarse = self.coarse.bounds(ijk[idx] // _COARSE, self)
+        coarse = self.coarse.bounds(ijk[idx] // _COARSE)
         keep = coarse < within
         idx, coarse = idx[keep], coarse[keep]
-        bound = np.maximum(self.fine.bounds(ijk[idx], self), coarse)
+        bound = np.maximum(self.fine.bounds(ijk[idx]), coarse)
         near = bound < within
         return idx[near], bound[near].astype(np.float64)
 
@@ -159,26 +160,29 @@ class _DistanceGrid:
 
 
 class _Cubes:
-    """One grid of cubes over the distance grid's box, each with its bound (NaN: not known
-    yet)."""
+    """One grid of cubes over the box from `low` (m, 3) `extent` wide, each with its bound
+    (NaN: not known yet) as `fill` gives it from the cube's centre and half diagonal."""
 
-    def __init__(self, cell_m: float, extent: Floats) -> None:
+    def __init__(self, cell_m: float, low: Floats, extent: Floats,
+                 fill: Callable[[Floats, float], Floats]) -> None:
         self.cell_m = cell_m
+        self.low = low
+        self.fill = fill
         self.reach_m = 0.5 * math.sqrt(3.0) * cell_m       # a point from the cube's centre
         self.shape = tuple(int(n) for n in np.ceil(extent / cell_m))
         self.cells = np.full(int(np.prod(self.shape)), np.nan, dtype=np.float32)
 
-    def bounds(self, ijk: Ints, grid: _DistanceGrid) -> NDArray[np.float32]:
-        """The bounds of the cubes `ijk` (k, 3) of the grid's box (float32, as kept),
-        filling the unknown ones from `grid`."""
+    def bounds(self, ijk: Ints) -> NDArray[np.float32]:
+        """The bounds of the cubes `ijk` (k, 3) (float32, as kept), the unknown ones filled
+        first."""
         flat: Ints = np.asarray(np.ravel_multi_index(tuple(ijk.T), self.shape))
         bound: NDArray[np.float32] = self.cells[flat]
         unknown = np.isnan(bound)
         if unknown.any():
             cells = np.unique(flat[unknown])
             centres = (np.stack(np.unravel_index(cells, self.shape), axis=1) + 0.5) \
-                * self.cell_m + grid.low
-            self.cells[cells] = grid.fill(centres, self.reach_m)
+                * self.cell_m + self.low
+            self.cells[cells] = self.fill(centres, self.reach_m)
             bound = self.cells[flat]
         return bound
 
