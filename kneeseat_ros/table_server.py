@@ -11,9 +11,10 @@ recording - is described in docs/design.md ("The node").
 QoS: inputs use `qos_profile_sensor_data` (best effort, volatile) with keep last 1000
 instead of 5 (5 ms at 1 kHz is shorter than a scheduling hiccup), which matches both
 reliable and best-effort publishers; outputs are reliable, keep last 1000 (a reliable
-writer overwrites unacknowledged answers beyond its depth: 100 is 50 ms at 2 kHz), and
-their policies can be overridden through the standard `qos_overrides.*` parameters. `/tf`
-uses tf2_ros's broadcaster QoS (reliable, volatile, keep last 100). Markers are published
+writer overwrites unacknowledged answers beyond its depth: 100 is 50 ms at 2 kHz). `/tf`
+uses tf2_ros's broadcaster QoS (reliable, volatile, keep last 100). Every input and output
+but `/tf` takes the standard `qos_overrides.*` parameters (history, depth, reliability):
+a tracker that must not lose a sample asks for reliable inputs. Markers are published
 at `marker_rate_hz` with the latest answer, not once per answer, so that a 1 kHz tracker
 does not flood RViz/Foxglove.
 
@@ -78,6 +79,14 @@ TF_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
 _BODY_RGBA = ((0.85, 0.8, 0.7, 1.0), (0.7, 0.8, 0.9, 1.0), (0.8, 0.9, 0.7, 1.0))
 _REFERENCE_RGBA = (0.95, 0.95, 0.9, 0.6)
 _POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+# every input and output but /tf takes the standard `qos_overrides./<topic>.<entity>.*`
+# parameters (history, depth, reliability)
+_OVERRIDABLE = QoSOverridingOptions.with_default_policies
+
+
+def _qos_words(qos: QoSProfile) -> str:
+    """A profile as the startup line says it: reliability and depth."""
+    return f'{qos.reliability.name.lower().replace("_", " ")}, depth {qos.depth}'
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -146,7 +155,7 @@ class TableServer(Node):
         route = self._make_route(served)
         self._diag_pub = self.create_publisher(
             DiagnosticArray, topics.DIAGNOSTICS, OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            qos_overriding_options=_OVERRIDABLE())
         self._tf_pub = self._make_tf_publisher()
         self._responder = Responder(route, self._counters, self._log, self._now_ns,
                                     self.params.out_of_range,
@@ -156,7 +165,7 @@ class TableServer(Node):
         if self.params.publish_markers:
             self._marker_pub = self.create_publisher(
                 MarkerArray, topics.MARKERS, OUTPUT_QOS,
-                qos_overriding_options=QoSOverridingOptions.with_default_policies())
+                qos_overriding_options=_OVERRIDABLE())
             self.create_timer(1.0 / self.params.marker_rate_hz, self._publish_markers)
             self._check_meshes()
 
@@ -178,7 +187,8 @@ class TableServer(Node):
             sub = self.create_subscription(msg_class, topic,
                                            functools.partial(self._on_input, handle=handle),
                                            INPUT_QOS, raw=True,
-                                           callback_group=self._inputs_group)
+                                           callback_group=self._inputs_group,
+                                           qos_overriding_options=_OVERRIDABLE())
             self._inputs.append(_Input(sub, handle, msg_type))
         responder.set_input_topics([i.sub.topic_name for i in self._inputs])
 
@@ -194,9 +204,9 @@ class TableServer(Node):
             f' deg, varus [{bounds.varus_min_deg:.1f}, {bounds.varus_max_deg:.1f}] deg, '
             f'out_of_range={self.params.out_of_range}; {mode}; in '
             f'{[i.sub.topic_name for i in self._inputs]} '
-            f'(sensor data QoS: best effort, depth {INPUT_QOS.depth}); out '
+            f'({_qos_words(self._inputs[0].sub.qos_profile)}); out '
             f'{[p.topic_name for p in route.body_pubs + route.body_world_pubs]} '
-            f'(reliable, depth {OUTPUT_QOS.depth}), tf '
+            f'({_qos_words(route.body_pubs[0].qos_profile)}), tf '
             f'{"on" if self._tf_pub is not None else "off"}; recording '
             f'{self._recorder.directory if self._recorder is not None else "off"}')
 
@@ -218,9 +228,9 @@ class TableServer(Node):
     def _pose_publisher(self, topic: str) -> Publisher:
         pub = self.create_publisher(
             PoseStamped, topic, OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            qos_overriding_options=_OVERRIDABLE())
         if self._recorder is not None:
-            self._recorder.add_topic(pub.topic_name, _POSE_TYPE, OUTPUT_QOS)
+            self._recorder.add_topic(pub.topic_name, _POSE_TYPE, pub.qos_profile)
         return pub
 
     def _make_tf_publisher(self) -> Publisher | None:
@@ -242,16 +252,17 @@ class TableServer(Node):
                                   '(set display_mesh in the knee config and rebuild)')
 
     def _recorded_topics(self) -> list[tuple[str, str, QoSProfile]]:
-        recorded = [(i.sub.topic_name, i.msg_type, INPUT_QOS) for i in self._inputs]
+        recorded = [(i.sub.topic_name, i.msg_type, i.sub.qos_profile) for i in self._inputs]
         for pub in (*self._pubs.values(), *self._world_pubs.values()):
-            recorded.append((pub.topic_name, _POSE_TYPE, OUTPUT_QOS))
+            recorded.append((pub.topic_name, _POSE_TYPE, pub.qos_profile))
         recorded.append((self._diag_pub.topic_name, 'diagnostic_msgs/msg/DiagnosticArray',
-                         OUTPUT_QOS))
+                         self._diag_pub.qos_profile))
         if self._tf_pub is not None:
             recorded.append((self._tf_pub.topic_name, 'tf2_msgs/msg/TFMessage', TF_QOS))
         if self._marker_pub is not None:
             recorded.append((self._marker_pub.topic_name,
-                             'visualization_msgs/msg/MarkerArray', OUTPUT_QOS))
+                             'visualization_msgs/msg/MarkerArray',
+                             self._marker_pub.qos_profile))
         return recorded
 
     def _start_recorder(self) -> None:
