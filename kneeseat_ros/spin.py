@@ -147,11 +147,16 @@ class InputsGroup(CallbackGroup):
     handlers stay out too: with rmw_fastrtps a subscription's event wakes the wait on every
     message of that subscription (the executor thread then spun at 60% of a core at 2 kHz);
     the inputs accept every publisher QoS by default, so these events practically never fire.
+
+    `handling` is held while inputs are handled (a wake-up's batch at a time): whatever reads
+    the counters that handling bumps from another thread (diagnostics) holds it too, so that
+    its numbers belong to one moment (answered and dropped counted from the same inputs).
     """
 
     def __init__(self) -> None:
         super().__init__()
         self.direct = False
+        self.handling = threading.Lock()
 
     def can_execute(self, entity: Any) -> bool:
         """Whether an executor may run `entity` now: not while `serve()` takes the inputs."""
@@ -209,7 +214,7 @@ def serve(node: Node, group: InputsGroup,
     gc.freeze()
     thread.start()
     try:
-        _wait_loop(node, inputs, stop)
+        _wait_loop(node, inputs, stop, group.handling)
     finally:
         # After a signal the executor thread ends by itself (its context is down) and
         # nothing is destroyed here: rclpy's signal thread may still be triggering the
@@ -245,9 +250,9 @@ def _housekeeping(node: Node, executor: SingleThreadedExecutor, failed: list[Bas
 
 
 def _wait_loop(node: Node, inputs: Sequence[tuple[Subscription, Handler]],
-               stop: GuardCondition) -> None:
-    """Wait on the inputs and `stop`; drain every ready input; return once the context
-    is down."""
+               stop: GuardCondition, handling: threading.Lock) -> None:
+    """Wait on the inputs and `stop`; drain every ready input, holding `handling`; return
+    once the context is down."""
     guards = [stop]
     wait_set = _rclpy.WaitSet(len(inputs), len(guards), 0, 0, 0, 0, node.context.handle)
     context_handle = node.context.handle
@@ -269,7 +274,8 @@ def _wait_loop(node: Node, inputs: Sequence[tuple[Subscription, Handler]],
             ready = wait_set.get_ready_entities('subscription')
             for sub, sub_handle, handle in pairs:
                 if sub_handle.pointer in ready:
-                    drain(sub, handle)
+                    with handling:
+                        drain(sub, handle)
 
 
 @contextlib.contextmanager

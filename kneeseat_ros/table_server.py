@@ -281,10 +281,11 @@ class TableServer(Node):
     # ------------------------------------------------------------------ inputs
     def _on_input(self, msg: Any, handle: Handler) -> None:
         """Executor callback of an input: handle it, then what else is queued behind it."""
-        handle(msg)
-        for i in self._inputs:
-            if i.handle is handle:
-                drain(i.sub, handle)
+        with self._inputs_group.handling:
+            handle(msg)
+            for i in self._inputs:
+                if i.handle is handle:
+                    drain(i.sub, handle)
 
     def serve(self) -> None:
         """Spin until shutdown: the inputs in this thread, everything else in a second one
@@ -316,20 +317,26 @@ class TableServer(Node):
             self._record(self._marker_pub.topic_name, markers, stamp_ns(stamp))
 
     def diagnostics(self) -> DiagnosticArray:
-        """The current DiagnosticArray; starts a new rate/latency window."""
-        now = self._ros_clock.now()
-        dropped = dict(self._counters.dropped)
-        if self._tracker is not None:
-            dropped['unpaired'] += self._tracker.pairer.unpaired
-            dropped['stale'] += self._tracker.pairer.stale
+        """The current DiagnosticArray; starts a new rate/latency window.
+
+        The counters are read with the inputs' handling held (`InputsGroup.handling`): the
+        input thread bumps them, and a read torn by it would say, say, every pair answered
+        but not every drop counted.
+        """
         state = NodeState(self.get_fully_qualified_name(), self.params.out_of_range,
                           self._tracker is not None, self._tf_pub is not None,
                           self.params.diagnostics_window_s, self._recorder_status(),
                           self._recorder is not None and bool(self._recorder.error))
         array = DiagnosticArray()
+        with self._inputs_group.handling:
+            now = self._ros_clock.now()
+            dropped = dict(self._counters.dropped)
+            if self._tracker is not None:
+                dropped['unpaired'] += self._tracker.pairer.unpaired
+                dropped['stale'] += self._tracker.pairer.stale
+            array.status.append(status(self._counters, dropped, self._served, state,
+                                       now.nanoseconds))
         array.header.stamp = now.to_msg()
-        array.status.append(status(self._counters, dropped, self._served, state,
-                                   now.nanoseconds))
         return array
 
     def _recorder_status(self) -> str:

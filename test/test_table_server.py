@@ -14,6 +14,7 @@ from pathlib import Path
 import re
 import signal
 import subprocess
+import threading
 import time
 from typing import Any
 
@@ -415,6 +416,33 @@ def test_in_process_node_answers_and_reports(context: Any, table_path: Path) -> 
         assert status.name == STATUS_NAME and status.hardware_id == '/table_server'
     finally:
         probe.destroy()
+        server.destroy_node()
+
+
+def test_diagnostics_wait_for_the_inputs_in_hand(context: Any, table_path: Path) -> None:
+    """Diagnostics read the counters only between inputs, never halfway through one.
+
+    The input thread bumps answered, dropped and the pairer's counts while handling; a read
+    in the middle once reported every tracker pair answered but a drop not yet counted.
+    """
+    server = TableServer(context=context, parameter_overrides=[
+        Parameter('table', value=str(table_path))])
+    read: list[Any] = []
+    done = threading.Event()
+
+    def read_diagnostics() -> None:
+        read.append(server.diagnostics())
+        done.set()
+
+    try:
+        reader = threading.Thread(target=read_diagnostics, daemon=True)
+        with server._inputs_group.handling:      # an input halfway through its handling
+            reader.start()
+            assert not done.wait(0.5), 'diagnostics read the counters during an input'
+        assert done.wait(10.0), 'diagnostics never read once the input was handled'
+        reader.join(timeout=10.0)
+        assert read and read[0].status[0].name == STATUS_NAME
+    finally:
         server.destroy_node()
 
 
