@@ -240,7 +240,7 @@ def test_tracker_mode_world_poses_equal_the_composition(tmp_path: Path, domain_i
     finally:
         probe.destroy()
         srv.stop_clean()
-    startup = (srv.out.read_text() + srv.err.read_text())
+    startup = srv.stderr()
     assert "'/tracker/tibia/pose'] (reliable, depth 1000); out" in startup, startup
 
 
