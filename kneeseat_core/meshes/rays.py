@@ -15,7 +15,9 @@ one asked first and a fine one where it leaves a point near, filled as they are 
 (built when first needed). `RayPair` answers for one settle. `blocked`: whether
 probes, each lifted along Δ, are in collision as given vertices see them (the proof of
 rest asks it before python-fcl; a ray entering the other body short of the lift is a real
-contact, so a probe it blocks is blocked; one it does not is left to python-fcl). `gaps`:
+contact, so a probe it blocks is blocked; one it does not is left to python-fcl).
+`crossed`: the same for edges, each a segment at the lifted probe (an edge that crosses a
+face of the other body is a contact; these see an edge across an edge). `gaps`:
 the gap field, every near ray's gap with the normal of the face it enters (the climb's
 leap models the travel over a small lateral move from it).
 `travel_from` (the travel by rays, `travel: rays`) casts only from the vertices near the
@@ -42,7 +44,7 @@ import trimesh
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .collision import CollisionPair, RigidBody
 
-__all__ = ['RayBody', 'RayPair', 'ray_body', 'hidden_gap_m']
+__all__ = ['RayBody', 'RayPair', 'ray_body', 'hidden_gap_m', 'triangle_edges']
 
 
 # The surface is sampled for the near set's distances by its vertices and, on triangles
@@ -381,6 +383,38 @@ class RayPair:
         self.casts += 1
         return out
 
+    def crossed(self, moving_edges: Floats, fixed_edges: Floats, poses: Floats) -> Bools:
+        """For each pose of `poses` (m, 4, 4): True when one of the segments `moving_edges`
+        (k, 2, 3, moving frame) crosses a face of the fixed body there, or one of
+        `fixed_edges` (j, 2, 3, fixed frame) a face of the moving body, by more than the
+        rays' rounding `_RAY_NOISE_M` (`_crossing`, checked in double precision): the
+        surfaces cross, so the body at that pose is in collision. Where two surfaces
+        cross, an edge of one crosses a face of the other, so these see the contacts of an
+        edge across an edge that vertex rays miss. False proves nothing (the edges left
+        out, a first face met that fails the check). One cast of every segment at every
+        pose."""
+        out = np.zeros(len(poses), dtype=bool)
+        if len(poses) == 0 or not (len(moving_edges) or len(fixed_edges)):
+            return out
+        rot, t = poses[:, :3, :3], poses[:, :3, 3]
+        into_fixed = moving_edges.reshape(-1, 3)[None] @ rot.transpose(0, 2, 1) + t[:, None]
+        into_moving = (fixed_edges.reshape(-1, 3)[None] - t[:, None]) @ rot
+        for body, ends, count in ((self._fixed, into_fixed, len(moving_edges)),
+                                  (self._moving, into_moving, len(fixed_edges))):
+            if count == 0:
+                continue
+            ends = ends.reshape(-1, 2, 3)                   # (m * count, 2, 3)
+            start, span = ends[:, 0], ends[:, 1] - ends[:, 0]
+            length = np.sqrt(np.einsum('ij,ij->i', span, span))
+            dist, prim = body.first_hits(start, span / length[:, None], length)
+            hit = np.flatnonzero(prim >= 0)
+            real = _crossing(body.body.vertices, body.body.faces, prim[hit], start[hit],
+                             ends[hit, 1])
+            out[hit[real] // count] = True
+            self.rays += len(start)
+        self.casts += 1
+        return out
+
     def gaps(self, pose: Pose, within_m: float) -> tuple[Floats, Floats, Floats]:
         """The gap field at `pose`: every ray (+Δ from the moving body's vertices, -Δ from
         the fixed body's) that enters the other body within `within_m`. Returns the gaps
@@ -463,3 +497,37 @@ class RayPair:
             base[:3, 3] += room * self.push
             done += room
             window = self.window_m
+
+
+def _crossing(vertices: Floats, faces: Ints, triangles: Ints, a: Floats, b: Floats) -> Bools:
+    """(k,) True where the segment from a[i] to b[i] (k, 3) crosses triangle
+    `triangles[i]` of the mesh (`vertices`, `faces`) with a margin of `_RAY_NOISE_M`, in
+    double precision: its ends that far on either side of the triangle's plane, and the
+    point where it crosses that far inside each of the triangle's edges."""
+    tri = vertices[faces[triangles]]
+    v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
+    normal = np.cross(v1 - v0, v2 - v0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        unit = normal / np.sqrt(np.einsum('ij,ij->i', normal, normal))[:, None]
+        da = np.einsum('ij,ij->i', unit, a - v0)
+        db = np.einsum('ij,ij->i', unit, b - v0)
+        out: Bools = ((da > _RAY_NOISE_M) & (db < -_RAY_NOISE_M)) \
+            | ((da < -_RAY_NOISE_M) & (db > _RAY_NOISE_M))
+        point = a + (da / (da - db))[:, None] * (b - a)
+        for p, q in ((v0, v1), (v1, v2), (v2, v0)):
+            edge = q - p
+            inward = np.cross(unit, edge) / np.sqrt(np.einsum('ij,ij->i', edge, edge))[:, None]
+            out &= np.einsum('ij,ij->i', inward, point - p) > _RAY_NOISE_M
+    return out
+
+
+def triangle_edges(body: RigidBody, triangles: Ints) -> Floats:
+    """The distinct edges of the body's `triangles` (k,) (repeats allowed): their end
+    points (e, 2, 3), the body's frame."""
+    corners = body.faces[np.unique(triangles)]
+    pairs = np.sort(np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]],
+                                    corners[:, [2, 0]]]), axis=1)
+    keys = np.unique(pairs[:, 0] * len(body.vertices) + pairs[:, 1])
+    out: Floats = body.vertices[np.stack([keys // len(body.vertices),
+                                          keys % len(body.vertices)], axis=1)]
+    return out

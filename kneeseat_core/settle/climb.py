@@ -28,8 +28,10 @@ over a small state object (`_Climb`):
   outward while it gains (a pattern move) and the climb resumes (D5).
   A probe that the near-active patches prove hopeless by a wide margin is not queried;
   the rest are asked of rays first (one cast per scale from the vertices of the triangles
-  in contact: a ray entering the other body short of a probe's lift blocks it exactly),
-  and python-fcl decides every probe the rays leave open.
+  in contact: a ray entering the other body short of a probe's lift blocks it exactly;
+  then one along the same triangles' edges: an edge crossing a face of the other body at
+  the lifted probe is a contact, exactly), and python-fcl decides every probe the rays
+  leave open.
 - the envelope: the climb may not leave it (D6); where the envelope holds (a config's
   soft-tissue stand-in), the move is kept inside and a rest on its boundary is
   reported as constrained.
@@ -47,6 +49,7 @@ import time
 import numpy as np
 
 from kneeseat_core.ligaments import Tissue
+from kneeseat_core.meshes import triangle_edges
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Pose
 from .hull import min_norm_point
@@ -70,6 +73,17 @@ class _Outcome:
 
     step: float
     end: End | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _FloorNear:
+    """What the proof's rays are cast from: the vertices (k, 3) and the edges (e, 2, 3) of
+    the triangles that cross at the floor's contact, each in its body's frame."""
+
+    moving: Floats
+    fixed: Floats
+    moving_edges: Floats
+    fixed_edges: Floats
 
 
 @dataclass(slots=True, eq=False)
@@ -241,7 +255,9 @@ class _Climb:
 
         A move is kept only if it delivers `promise` of the gain its slope promised,
         measured: one query asks whether the moved body, lifted by that much (plus what
-        the current pose's own bracket leaves open), is still free. The current bracket is
+        the current pose's own bracket leaves open), is still free (python-fcl's contact
+        set there, which costs what a boolean does on a free pose and is what a blocked
+        move learns from). The current bracket is
         narrowed first to `measure` of the promise, so a promise of a few micrometres is
         held to a fraction of one and a promise of a millimetre to the contact tolerance.
         A promise too small to measure is taken on trust (it only has to not lose depth),
@@ -266,8 +282,11 @@ class _Climb:
         kept = self.objective.lift_to(target, self.pose, base_gap, gain)
         if abs(kept) <= self.objective.lift_limit:
             lifted = translated(target, kept * s.push)
-            if s.collides(lifted):
-                return self._blocked(direction, slope, length, measured, lifted, target)
+            # the contact set there at once: empty where the lifted body is free (python-fcl
+            # walks the same pairs as for a boolean), what `_blocked` learns from otherwise
+            crossing = s.patches(lifted)
+            if len(crossing):
+                return self._blocked(direction, slope, length, measured, crossing, target)
             bracket = s.touch(lifted, self.objective.travel_guess(promised, kept), tau,
                               free_at_start=True)
         else:
@@ -276,8 +295,8 @@ class _Climb:
             bracket = s.touch(target, self.objective.travel_guess(promised, 0.0), tau)
             if bracket is not None and self.objective.value(bracket.free) < \
                     self.objective.target(self.pose, base_gap, gain):
-                return self._blocked(direction, slope, length, measured, bracket.touching,
-                                     target)
+                return self._blocked(direction, slope, length, measured,
+                                     s.patches(bracket.touching), target)
         if bracket is None:
             return _Outcome(self.step, (Status.LOST, LOST_CONTACT))
         floor = self._floor_at(bracket.free)
@@ -291,12 +310,12 @@ class _Climb:
         return _Outcome(length * self._crest(slope, new_slope), end)
 
     def _blocked(self, direction: Floats, slope: float, length: float, measured: bool,
-                 lifted: Pose, target: Pose) -> _Outcome:
+                 floor: Contacts, target: Pose) -> _Outcome:
         """The move kept less than its promise: past the crest, a contact the patches did
-        not know (D2: learn it, so that the next direction respects it), or a slope the
-        normals promise but the surfaces do not have; the next step is shorter."""
+        not know (D2: learn it from the contact patches `floor` of the body held back
+        there, so that the next direction respects it), or a slope the normals promise but
+        the surfaces do not have; the next step is shorter."""
         s, t = self.search, self.tuning
-        floor = s.patches(lifted)
         grads = self.gradients(floor, target)
         new_slope = float(np.min(grads @ direction)) if len(grads) else 0.0
         blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
@@ -448,7 +467,7 @@ class _Climb:
         model = np.min(grads @ directions.T, axis=0) if len(grads) \
             else np.zeros(len(directions))
         order = np.argsort(-model)                       # most promising first
-        near = self._floor_vertices()
+        near = self._floor_near()
         try:
             scales = list(zip(t.probe_scales_moves, t.hopeless_res))
             if pressed >= t.pressed_from:      # never the travel (pressed 1)
@@ -479,31 +498,39 @@ class _Climb:
             self.proof_s += time.perf_counter() - started
         return None
 
-    def _floor_vertices(self) -> tuple[Floats, Floats]:
-        """The vertices (body frames) of the triangles that cross at the floor's contact:
-        the moving body's, the reference's."""
+    def _floor_near(self) -> _FloorNear:
+        """The vertices and the edges (body frames) of the triangles that cross at the
+        floor's contact, each body's."""
         pair = self.search.pair
         moving_tris, fixed_tris = self.floor.triangles
-        return (pair.moving.vertices[np.unique(pair.moving.faces[moving_tris])],
-                pair.fixed.vertices[np.unique(pair.fixed.faces[fixed_tris])])
+        return _FloorNear(pair.moving.vertices[np.unique(pair.moving.faces[moving_tris])],
+                          pair.fixed.vertices[np.unique(pair.fixed.faces[fixed_tris])],
+                          triangle_edges(pair.moving, moving_tris),
+                          triangle_edges(pair.fixed, fixed_tris))
 
-    def _refuted(self, cands: Floats, firsts: Floats,
-                 near: tuple[Floats, Floats]) -> Bools:
+    def _refuted(self, cands: Floats, firsts: Floats, near: _FloorNear) -> Bools:
         """(m,) True for each probe of `cands` (m, 4, 4) that the rays find in collision
-        lifted by its `firsts` (the Newton step `_gains` asks python-fcl about first): one
-        cast from the `near` vertices (`_floor_vertices`), at every probe.
-        A ray that enters the other body short of the lift refutes the probe exactly (the
-        travel there is shorter than the lift); False leaves the probe to `_gains`."""
+        lifted by its `firsts` (the Newton step `_gains` asks python-fcl about first), from
+        the floor's triangles (`_floor_near`): one cast of vertex rays at every probe (a
+        ray that enters the other body short of the lift: the travel there is shorter than
+        the lift), then one of the edges at the lifted probes the vertices left open (an
+        edge that crosses a face of the other body there: the edge-by-edge contacts vertex
+        rays miss). Either refutes the probe exactly; False leaves it to `_gains`."""
         s = self.search
-        moving_near, fixed_near = near
         asked = np.isfinite(firsts) & (np.abs(firsts) <= self.objective.lift_limit)
-        if s.rays is None or not asked.any() or not (len(moving_near) or len(fixed_near)):
+        if s.rays is None or not asked.any() or not (len(near.moving) or len(near.fixed)):
             return np.zeros(len(cands), dtype=bool)
         lifts = np.where(asked, firsts, 0.0)
         bases = cands.copy()              # lifted back first where the lift is negative
         bases[:, :3, 3] += np.minimum(lifts, 0.0)[:, None] * s.push
-        blocked = s.rays.blocked(moving_near, fixed_near, bases, np.maximum(lifts, 0.0))
-        return blocked & asked
+        refuted = s.rays.blocked(near.moving, near.fixed, bases, np.maximum(lifts, 0.0)) \
+            & asked
+        open_ = np.flatnonzero(asked & ~refuted)
+        if len(open_):
+            lifted = cands[open_]
+            lifted[:, :3, 3] += lifts[open_, None] * s.push
+            refuted[open_] = s.rays.crossed(near.moving_edges, near.fixed_edges, lifted)
+        return refuted
 
     def _gains(self, cand: Pose, lift: float, first: float) -> bool:
         """Whether the lateral pose `cand` is at least `lift` above the current pose in the
