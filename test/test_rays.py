@@ -470,3 +470,19 @@ def test_the_proof_by_rays_ends_where_python_fcl_alone_ends(
     assert with_rays.converged and alone.converged
     assert np.array_equal(with_rays.pose, alone.pose)
     assert with_rays.collision_checks < alone.collision_checks
+
+
+def test_a_degenerate_edge_casts_no_ray() -> None:
+    """An edge of zero length (a mesh's degenerate triangle) has no direction: it is left
+    out of the cast, and the other edges still answer."""
+    fixed = RigidBody.from_mesh(trimesh.creation.box((0.02, 0.02, 0.02)))
+    moving = RigidBody.from_mesh(trimesh.creation.box((0.01, 0.01, 0.01)))
+    rays = RayPair(CollisionPair(fixed, moving), np.array([0.0, 0.0, -1.0]), 4e-3,
+                   4 * RESOLUTION_M)
+    edges = triangle_edges(moving, np.arange(len(moving.faces)))
+    point = np.full((1, 2, 3), 0.001)
+    poses = np.stack([pose_from(np.eye(3), np.array([0.0, 0.0, z])) for z in (0.0149, 0.02)])
+    with np.errstate(all='raise'):
+        got = rays.crossed(np.concatenate([point, edges]), np.zeros((0, 2, 3)), poses)
+    assert got.tolist() == [True, False]
+    assert [CollisionPair(fixed, moving).collides(p) for p in poses] == [True, False]

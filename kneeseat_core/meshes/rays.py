@@ -406,9 +406,12 @@ class RayPair:
             ends = ends.reshape(-1, 2, 3)                   # (m * count, 2, 3)
             start, span = ends[:, 0], ends[:, 1] - ends[:, 0]
             length = np.sqrt(np.einsum('ij,ij->i', span, span))
-            dist, prim = body.first_hits(start, span / length[:, None], length)
-            hit = np.flatnonzero(prim >= 0)
-            real = _crossing(body.body.vertices, body.body.faces, prim[hit], start[hit],
+            cast = np.flatnonzero(length > 0.0)             # a degenerate edge has no ray
+            _, prim = body.first_hits(start[cast], span[cast] / length[cast, None],
+                                      length[cast])
+            hit = cast[prim >= 0]
+            prim = prim[prim >= 0]
+            real = _crossing(body.body.vertices, body.body.faces, prim, start[hit],
                              ends[hit, 1])
             out[hit[real] // count] = True
             self.rays += len(start)
