@@ -21,7 +21,7 @@ import trimesh
 from kneeseat_core.errors import SettleError
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.meshes import (CollisionPair, hidden_gap_m, load_mesh, load_meshes,
-                                  RayPair, RigidBody, triangle_edges)
+                                  RayPair, RigidBody)
 from kneeseat_core.meshes.rays import RayBody
 from kneeseat_core.settle import settle, SettleParams
 import settle_cases as sc
@@ -365,8 +365,8 @@ def probe_scene(fixed: RigidBody, moving: RigidBody, start: np.ndarray, push: np
                            fixed.vertices[np.unique(fixed.faces[fixed_tris])], probes, lifts)
     lifted = probes.copy()
     lifted[:, :3, 3] += lifts[:, None] * push
-    crossed = rays.crossed(triangle_edges(moving, moving_tris),
-                           triangle_edges(fixed, fixed_tris), lifted) & ~blocked
+    crossed = rays.crossed(moving.edge_ends(moving_tris), fixed.edge_ends(fixed_tris),
+                           lifted) & ~blocked
     colliding = 0
     for pose, lift, no, cross in zip(lifted, lifts, blocked, crossed):
         hit = pair.collides(pose)
@@ -394,8 +394,8 @@ def crossed_ridges(depth_m: float, offset_m: float) -> tuple[bool, bool, bool]:
     above = pose_from(np.eye(3), np.array([offset_m, 0.0, 0.02 + 1e-4]))
     blocked = rays.blocked(moving.vertices, fixed.vertices, above[None],
                            np.array([1e-4 + depth_m]))[0]
-    crossed = rays.crossed(triangle_edges(moving, np.arange(len(moving.faces))),
-                           triangle_edges(fixed, np.arange(len(fixed.faces))), pose[None])[0]
+    crossed = rays.crossed(moving.edge_ends(np.arange(len(moving.faces))),
+                           fixed.edge_ends(np.arange(len(fixed.faces))), pose[None])[0]
     return CollisionPair(fixed, moving).collides(pose), bool(blocked), bool(crossed)
 
 
@@ -479,7 +479,7 @@ def test_a_degenerate_edge_casts_no_ray() -> None:
     moving = RigidBody.from_mesh(trimesh.creation.box((0.01, 0.01, 0.01)))
     rays = RayPair(CollisionPair(fixed, moving), np.array([0.0, 0.0, -1.0]), 4e-3,
                    4 * RESOLUTION_M)
-    edges = triangle_edges(moving, np.arange(len(moving.faces)))
+    edges = moving.edge_ends(np.arange(len(moving.faces)))
     point = np.full((1, 2, 3), 0.001)
     poses = np.stack([pose_from(np.eye(3), np.array([0.0, 0.0, z])) for z in (0.0149, 0.02)])
     with np.errstate(all='raise'):

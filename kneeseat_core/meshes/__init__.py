@@ -4,8 +4,7 @@ and normals, boolean and contact queries; `rays`: the travel along a push by Emb
 rays)."""
 from .collision import CollisionPair, RigidBody
 from .load import check_mesh, check_mesh_files, load_mesh, load_meshes, UNIT_SCALE, Units
-from .rays import hidden_gap_m, RayPair, triangle_edges
+from .rays import hidden_gap_m, RayPair
 
 __all__ = ['Units', 'UNIT_SCALE', 'load_mesh', 'load_meshes', 'check_mesh', 'check_mesh_files',
-           'RigidBody', 'CollisionPair', 'RayPair', 'hidden_gap_m',
-           'triangle_edges']
+           'RigidBody', 'CollisionPair', 'RayPair', 'hidden_gap_m']

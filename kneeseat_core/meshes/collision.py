@@ -42,6 +42,8 @@ class RigidBody:
     faces: Ints           # (n, 3) vertex indices
     vertex_normals: Floats  # (m, 3) unit
     adjacency: tuple[Ints, Ints]   # CSR (indptr, indices) of edge neighbours
+    edges: Ints           # (e, 2) vertex indices of each distinct edge
+    face_edges: Ints      # (n, 3) each triangle's edges, indices into `edges`
 
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh) -> RigidBody:
@@ -66,7 +68,15 @@ class RigidBody:
         return cls(mesh, bvh, np.asarray(mesh.triangles_center), normals / lengths,
                    vertices, centroid, centre, radius, reach, faces,
                    np.asarray(mesh.vertex_normals, dtype=np.float64),
-                   (indptr, np.ascontiguousarray(both[order, 1])))
+                   (indptr, np.ascontiguousarray(both[order, 1])),
+                   np.asarray(mesh.edges_unique, dtype=np.int64),
+                   np.asarray(mesh.faces_unique_edges, dtype=np.int64))
+
+    def edge_ends(self, triangles: Ints) -> Floats:
+        """The distinct edges of `triangles` (k,) (repeats allowed): their end points
+        (e, 2, 3), the body's frame."""
+        out: Floats = self.vertices[self.edges[np.unique(self.face_edges[triangles])]]
+        return out
 
 
 def _bvh(vertices: Floats, faces: Ints) -> fcl.BVHModel:

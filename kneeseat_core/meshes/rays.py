@@ -44,7 +44,7 @@ import trimesh
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .collision import CollisionPair, RigidBody
 
-__all__ = ['RayBody', 'RayPair', 'ray_body', 'hidden_gap_m', 'triangle_edges']
+__all__ = ['RayBody', 'RayPair', 'ray_body', 'hidden_gap_m']
 
 
 # The surface is sampled for the near set's distances by its vertices and, on triangles
@@ -521,16 +521,4 @@ def _crossing(vertices: Floats, faces: Ints, triangles: Ints, a: Floats, b: Floa
             edge = q - p
             inward = np.cross(unit, edge) / np.sqrt(np.einsum('ij,ij->i', edge, edge))[:, None]
             out &= np.einsum('ij,ij->i', inward, point - p) > _RAY_NOISE_M
-    return out
-
-
-def triangle_edges(body: RigidBody, triangles: Ints) -> Floats:
-    """The distinct edges of the body's `triangles` (k,) (repeats allowed): their end
-    points (e, 2, 3), the body's frame."""
-    corners = body.faces[np.unique(triangles)]
-    pairs = np.sort(np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]],
-                                    corners[:, [2, 0]]]), axis=1)
-    keys = np.unique(pairs[:, 0] * len(body.vertices) + pairs[:, 1])
-    out: Floats = body.vertices[np.stack([keys // len(body.vertices),
-                                          keys % len(body.vertices)], axis=1)]
     return out

@@ -49,7 +49,6 @@ import time
 import numpy as np
 
 from kneeseat_core.ligaments import Tissue
-from kneeseat_core.meshes import triangle_edges
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Pose
 from .hull import min_norm_point
@@ -505,8 +504,8 @@ class _Climb:
         moving_tris, fixed_tris = self.floor.triangles
         return _FloorNear(pair.moving.vertices[np.unique(pair.moving.faces[moving_tris])],
                           pair.fixed.vertices[np.unique(pair.fixed.faces[fixed_tris])],
-                          triangle_edges(pair.moving, moving_tris),
-                          triangle_edges(pair.fixed, fixed_tris))
+                          pair.moving.edge_ends(moving_tris),
+                          pair.fixed.edge_ends(fixed_tris))
 
     def _refuted(self, cands: Floats, firsts: Floats, near: _FloorNear) -> Bools:
         """(m,) True for each probe of `cands` (m, 4, 4) that the rays find in collision
