@@ -1,7 +1,7 @@
 """ament_python package kneeseat_ros; also ships the ROS-free core, kneeseat_core."""
 from glob import glob
 
-from setuptools import find_packages, setup
+from setuptools import Extension, find_packages, setup
 
 PACKAGE = 'kneeseat_ros'
 
@@ -10,14 +10,19 @@ setup(
     version='0.1.0',
     packages=find_packages(include=['kneeseat_core', 'kneeseat_core.*',
                                     'kneeseat_ros', 'kneeseat_ros.*']),
-    package_data={'kneeseat_core': ['py.typed', 'data/*']},
+    package_data={'kneeseat_core': ['py.typed', 'data/*', 'meshes/_sweep.pyi']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml')),
     ],
+    # compiled C++: the exact travel along the push (kneeseat_core/meshes/sweep.py)
+    ext_modules=[Extension(name, [source], extra_compile_args=['-O3', '-std=c++17'],
+                           language='c++')
+                 for name, source in (('kneeseat_core.meshes._sweep',
+                                       'kneeseat_core/meshes/_sweep.cpp'),)],
     install_requires=['setuptools'],
-    zip_safe=True,
+    zip_safe=False,
     maintainer='kneeseat developers',
     maintainer_email='kneeseat@example.org',
     description='Collision-detection motion modeling of rigid bones (US 6,708,142) '

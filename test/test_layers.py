@@ -54,9 +54,11 @@ def modules(root: Path) -> list[Path]:
 
 
 def is_module(dotted: str) -> bool:
-    """Whether a dotted name is one of the project's modules or packages."""
+    """Whether a dotted name is one of the project's modules or packages (a compiled module
+    counts by its type stub, `.pyi`)."""
     path = REPO.joinpath(*dotted.split('.'))
-    return path.with_suffix('.py').is_file() or (path / '__init__.py').is_file()
+    return path.with_suffix('.py').is_file() or path.with_suffix('.pyi').is_file() \
+        or (path / '__init__.py').is_file()
 
 
 def imports(path: Path) -> Iterator[str]:

@@ -1,0 +1,889 @@
+// The travel along a direction measured exactly: how far a moving triangle mesh can be
+// translated along a unit direction d before it first touches a fixed one, and the contact
+// features at that first touch (kneeseat_core/meshes/sweep.py is its Python face).
+//
+// Two triangles translated towards each other along d first touch at a vertex of one on the
+// face of the other or at an edge of one across an edge of the other. Seen along d both are
+// flat: over the overlap of their shadows the gap along d between them is affine, so its
+// least value lies at a corner of that overlap, and every corner is one of those features:
+// a vertex of either triangle inside the other's shadow, or two edges whose shadows cross.
+// `TrianglePair` evaluates all fifteen, exactly, in double precision. The same corners give
+// the largest gap: a pair whose least and largest gaps have opposite signs crosses already.
+//
+// Which pairs to evaluate comes from a bounding volume hierarchy over each body (built once,
+// in its own frame, `Body`). Seen along a direction (`View`, one per direction, filled as
+// it is asked) a node of the hierarchy is bounded by its shadow's rectangle and by a plane
+// over it: every point of its triangles lies between two offsets of that plane. Two
+// conforming surfaces (a knee's bearing surfaces) have nearly parallel planes, so the gap
+// between two nodes is bounded within the nodes' curvature, not within their extent along d
+// as axis-aligned boxes would be. The pairs of nodes are visited lowest bound first, so the
+// search stops once no pair left can come closer than the best contact found.
+//
+// Only the triangles facing the other body can take part in a first touch between closed
+// bodies (a ray from outside enters through a front face): a View keeps those (`side`), and
+// keeps every triangle of a surface that is not closed (an open cartilage sheet has no
+// inside, both its faces can be met).
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <vector>
+
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr int kLeafTriangles = 2;     // triangles per leaf of the hierarchy
+// Nodes over at most this many triangles get plane bounds from their own vertices; larger
+// ones (the top of the tree, asked rarely) are bounded by their box's corners.
+constexpr int kPlaneBoundTriangles = 64;
+
+inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+inline double cross2(double ax, double ay, double bx, double by) { return ax * by - ay * bx; }
+
+struct Node {
+    int32_t right;            // second child (the first is the next node); -1 for a leaf
+    int32_t first, count;     // the node's triangles: [first, first + count) in tree order
+    double lo[3], hi[3];      // bounding box, the body's frame
+};
+
+// One triangle mesh and its hierarchy, in the body's own frame.
+struct Body {
+    std::vector<double> vertices;    // (n, 3)
+    std::vector<int32_t> faces;      // (m, 3) in tree order
+    std::vector<int64_t> face_id;    // (m,) index of each face as given
+    std::vector<int32_t> tree_index; // (m,) where each face as given sits in tree order
+    std::vector<double> normals;     // (m, 3) unit face normals (winding)
+    std::vector<double> areas;       // (m,)
+    std::vector<int8_t> facing;      // (m,) +1/-1: the outward side of a closed surface
+                                     // (winding or its reverse); 0: open, both sides count
+    std::vector<Node> nodes;
+
+    int build(std::vector<int32_t> &order, const std::vector<double> &centres, int first, int count);
+};
+
+int Body::build(std::vector<int32_t> &order, const std::vector<double> &centres, int first,
+                int count) {
+    int index = static_cast<int>(nodes.size());
+    Node node{-1, first, count, {kInf, kInf, kInf}, {-kInf, -kInf, -kInf}};
+    nodes.push_back(node);
+    if (count <= kLeafTriangles) return index;
+    double lo[3] = {kInf, kInf, kInf}, hi[3] = {-kInf, -kInf, -kInf};
+    for (int i = first; i < first + count; ++i)
+        for (int k = 0; k < 3; ++k) {
+            lo[k] = std::min(lo[k], centres[3 * order[i] + k]);
+            hi[k] = std::max(hi[k], centres[3 * order[i] + k]);
+        }
+    int axis = 0;
+    for (int k = 1; k < 3; ++k)
+        if (hi[k] - lo[k] > hi[axis] - lo[axis]) axis = k;
+    int middle = first + count / 2;
+    std::nth_element(order.begin() + first, order.begin() + middle, order.begin() + first + count,
+                     [&](int32_t a, int32_t b) {
+                         return centres[3 * a + axis] < centres[3 * b + axis] ||
+                                (centres[3 * a + axis] == centres[3 * b + axis] && a < b);
+                     });
+    build(order, centres, first, middle - first);
+    int right = build(order, centres, middle, first + count - middle);
+    nodes[index].right = right;
+    return index;
+}
+
+void make_body(Body &body, const double *vertices, Py_ssize_t nv, const int64_t *faces,
+               Py_ssize_t nf, const int8_t *facing) {
+    body.vertices.assign(vertices, vertices + 3 * nv);
+    std::vector<double> centres(3 * nf);
+    for (Py_ssize_t t = 0; t < nf; ++t)
+        for (int k = 0; k < 3; ++k)
+            centres[3 * t + k] = (vertices[3 * faces[3 * t] + k] + vertices[3 * faces[3 * t + 1] + k] +
+                                  vertices[3 * faces[3 * t + 2] + k]) / 3.0;
+    std::vector<int32_t> order(nf);
+    for (Py_ssize_t t = 0; t < nf; ++t) order[t] = static_cast<int32_t>(t);
+    body.nodes.reserve(2 * nf / kLeafTriangles + 2);
+    if (nf > 0) body.build(order, centres, 0, static_cast<int>(nf));
+    body.faces.resize(3 * nf);
+    body.face_id.resize(nf);
+    body.tree_index.resize(nf);
+    body.normals.resize(3 * nf);
+    body.areas.resize(nf);
+    body.facing.resize(nf);
+    for (Py_ssize_t i = 0; i < nf; ++i) {
+        int64_t t = order[i];
+        for (int c = 0; c < 3; ++c) body.faces[3 * i + c] = static_cast<int32_t>(faces[3 * t + c]);
+        body.face_id[i] = t;
+        body.tree_index[t] = static_cast<int32_t>(i);
+        body.facing[i] = facing[t];
+        const double *a = &vertices[3 * faces[3 * t]], *b = &vertices[3 * faces[3 * t + 1]],
+                     *c = &vertices[3 * faces[3 * t + 2]];
+        double e1[3] = {b[0] - a[0], b[1] - a[1], b[2] - a[2]};
+        double e2[3] = {c[0] - a[0], c[1] - a[1], c[2] - a[2]};
+        double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                       e1[0] * e2[1] - e1[1] * e2[0]};
+        double length = std::sqrt(dot3(n, n));
+        body.areas[i] = 0.5 * length;
+        for (int k = 0; k < 3; ++k) body.normals[3 * i + k] = length > 0.0 ? n[k] / length : 0.0;
+    }
+    for (Node &node : body.nodes)
+        for (int i = node.first; i < node.first + node.count; ++i)
+            for (int c = 0; c < 3; ++c) {
+                const double *p = &body.vertices[3 * body.faces[3 * i + c]];
+                for (int k = 0; k < 3; ++k) {
+                    node.lo[k] = std::min(node.lo[k], p[k]);
+                    node.hi[k] = std::max(node.hi[k], p[k]);
+                }
+            }
+}
+
+// A node seen along d: its shadow's rectangle in (u, w) and a plane h = g . q + c over it
+// (c folded into the offsets), every point of its triangles at a height h - g . q in
+// [low, high]. low > high: no triangle of the node takes part.
+struct Bound {
+    double lo[2], hi[2], g[2], low, high;
+};
+
+// A body seen along a direction d (its own frame): heights along d, shadows in the plane
+// across it (basis u, w), and the bounds of its nodes, each computed when first asked.
+struct View {
+    const Body *body;
+    double d[3], u[3], w[3];
+    int side;                          // +1: the faces whose outside faces +d take part
+    std::vector<double> shadow;        // (n, 3): u, w, h of each vertex
+    std::vector<uint8_t> has_shadow;
+    std::vector<Bound> bounds;
+    std::vector<uint8_t> has_bound;
+    // the moving body's vertices placed for the current query (fixed view coordinates)
+    std::vector<double> placed;
+    std::vector<uint32_t> placed_stamp;
+
+    View(const Body &b, const double *direction, int side_);
+    const double *vertex(int32_t i);
+    bool takes_part(int32_t t) const;
+    const Bound &bound(int node);
+};
+
+void across(const double d[3], double u[3], double w[3]) {
+    double a[3] = {1.0, 0.0, 0.0};
+    if (std::fabs(d[0]) > 0.6) { a[0] = 0.0; a[1] = 1.0; }
+    double along = dot3(a, d);
+    for (int k = 0; k < 3; ++k) u[k] = a[k] - along * d[k];
+    double length = std::sqrt(dot3(u, u));
+    for (int k = 0; k < 3; ++k) u[k] /= length;
+    w[0] = d[1] * u[2] - d[2] * u[1];
+    w[1] = d[2] * u[0] - d[0] * u[2];
+    w[2] = d[0] * u[1] - d[1] * u[0];
+}
+
+View::View(const Body &b, const double *direction, int side_) : body(&b), side(side_) {
+    for (int k = 0; k < 3; ++k) d[k] = direction[k];
+    across(d, u, w);
+    size_t nv = b.vertices.size() / 3;
+    shadow.resize(3 * nv);
+    has_shadow.assign(nv, 0);
+    bounds.resize(b.nodes.size());
+    has_bound.assign(b.nodes.size(), 0);
+}
+
+const double *View::vertex(int32_t i) {
+    if (!has_shadow[i]) {
+        const double *p = &body->vertices[3 * i];
+        shadow[3 * i] = dot3(p, u);
+        shadow[3 * i + 1] = dot3(p, w);
+        shadow[3 * i + 2] = dot3(p, d);
+        has_shadow[i] = 1;
+    }
+    return &shadow[3 * i];
+}
+
+bool View::takes_part(int32_t t) const {
+    int8_t facing = body->facing[t];
+    return facing == 0 || side * facing * dot3(&body->normals[3 * t], d) >= 0.0;
+}
+
+const Bound &View::bound(int index) {
+    Bound &b = bounds[index];
+    if (has_bound[index]) return b;
+    has_bound[index] = 1;
+    const Node &node = body->nodes[index];
+    b.lo[0] = b.lo[1] = kInf;
+    b.hi[0] = b.hi[1] = -kInf;
+    b.g[0] = b.g[1] = 0.0;
+    b.low = kInf;
+    b.high = -kInf;
+    if (node.count > kPlaneBoundTriangles) {      // the box's corners
+        for (int c = 0; c < 8; ++c) {
+            double p[3] = {c & 1 ? node.hi[0] : node.lo[0], c & 2 ? node.hi[1] : node.lo[1],
+                           c & 4 ? node.hi[2] : node.lo[2]};
+            double x = dot3(p, u), y = dot3(p, w), h = dot3(p, d);
+            b.lo[0] = std::min(b.lo[0], x); b.hi[0] = std::max(b.hi[0], x);
+            b.lo[1] = std::min(b.lo[1], y); b.hi[1] = std::max(b.hi[1], y);
+            b.low = std::min(b.low, h); b.high = std::max(b.high, h);
+        }
+        return b;
+    }
+    // the plane: across the area-weighted normal of the triangles taking part (none, where
+    // they stand steeper than 75 degrees to d: the box's heights are then as tight)
+    double n[3] = {0.0, 0.0, 0.0};
+    bool any = false;
+    for (int i = node.first; i < node.first + node.count; ++i) {
+        if (!takes_part(i)) continue;
+        any = true;
+        const double *f = &body->normals[3 * i];
+        double along = dot3(f, d), sign = along >= 0.0 ? 1.0 : -1.0;
+        n[0] += sign * body->areas[i] * dot3(f, u);
+        n[1] += sign * body->areas[i] * dot3(f, w);
+        n[2] += sign * body->areas[i] * along;
+    }
+    if (!any) return b;
+    double length = std::sqrt(dot3(n, n));
+    if (length > 0.0 && std::fabs(n[2]) >= 0.25 * length) {
+        b.g[0] = -n[0] / n[2];
+        b.g[1] = -n[1] / n[2];
+    }
+    for (int i = node.first; i < node.first + node.count; ++i) {
+        if (!takes_part(i)) continue;
+        for (int c = 0; c < 3; ++c) {
+            const double *p = vertex(body->faces[3 * i + c]);
+            b.lo[0] = std::min(b.lo[0], p[0]); b.hi[0] = std::max(b.hi[0], p[0]);
+            b.lo[1] = std::min(b.lo[1], p[1]); b.hi[1] = std::max(b.hi[1], p[1]);
+            double r = p[2] - b.g[0] * p[0] - b.g[1] * p[1];
+            b.low = std::min(b.low, r); b.high = std::max(b.high, r);
+        }
+    }
+    return b;
+}
+
+// A contact feature: the gap along d at which it closes, its unit normal (oriented n . d >= 0:
+// the gap changes by -n . dp / n . d when the moving body's point moves by dp), the point on
+// the moving body (fixed frame) and what meets what (0 a moving vertex on a fixed face,
+// 1 a fixed vertex on a moving face, 2 an edge across an edge) with the two triangles.
+// `room`: how far the moving body may slide across d before the feature stops being one
+// (the vertex leaves the other triangle's shadow, the crossing runs off an edge).
+struct Feature {
+    double gap, normal[3], point[3], room;
+    int64_t kind, moving_face, fixed_face;
+};
+
+// distance from q to the nearest edge line of triangle (p0, p1, p2) in the plane
+inline double edge_distance(const double *p0, const double *p1, const double *p2, double qx, double qy) {
+    const double *v[3] = {p0, p1, p2};
+    double least = kInf;
+    for (int i = 0; i < 3; ++i) {
+        const double *a = v[i], *b = v[(i + 1) % 3];
+        double ex = b[0] - a[0], ey = b[1] - a[1], length = std::sqrt(ex * ex + ey * ey);
+        if (length == 0.0) continue;
+        least = std::min(least, std::fabs(cross2(ex, ey, qx - a[0], qy - a[1])) / length);
+    }
+    return least;
+}
+
+struct Visit {          // a pair of nodes to open: fixed, moving, and their gap's lower bound
+    int32_t a, b;
+    double lo;
+};
+
+struct Sweep {
+    View *fixed, *moving;
+    double R[9], T[3];                 // fixed_from_moving
+    double cos_, sin_, du, dw, dh;     // moving view -> fixed view: q = Rot q' + (du, dw)
+    double behind, window, limit;
+    uint32_t stamp = 0;
+    bool want_features = false;
+    // results
+    double best;
+    bool buried;
+    std::vector<Feature> features;
+    std::vector<Visit> visits;         // the traversal's stack, kept between queries
+    long pairs = 0;
+
+    void place(const double *pose);
+    const double *moving_vertex(int32_t i);
+    bool node_bounds(int a, int b, double &lo, double &hi);
+    double cutoff() const { return std::min(best + window, limit); }
+    void triangle_pair(int32_t moving_face, int32_t fixed_face);
+    void run();
+};
+
+void Sweep::place(const double *pose) {
+    for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) R[3 * r + c] = pose[4 * r + c];
+        T[r] = pose[4 * r + 3];
+    }
+    // the moving view's u turned into the fixed frame, seen in the fixed view's (u, w)
+    double ru[3];
+    for (int k = 0; k < 3; ++k)
+        ru[k] = R[3 * k] * moving->u[0] + R[3 * k + 1] * moving->u[1] + R[3 * k + 2] * moving->u[2];
+    cos_ = dot3(ru, fixed->u);
+    sin_ = dot3(ru, fixed->w);
+    double norm = std::sqrt(cos_ * cos_ + sin_ * sin_);
+    cos_ /= norm;
+    sin_ /= norm;
+    du = dot3(T, fixed->u);
+    dw = dot3(T, fixed->w);
+    dh = dot3(T, fixed->d);
+    if (++moving->placed_stamp[0] == 0) {        // slot 0 holds the running stamp
+        std::fill(moving->placed_stamp.begin(), moving->placed_stamp.end(), 0);
+        moving->placed_stamp[0] = 1;
+    }
+    stamp = moving->placed_stamp[0];
+}
+
+const double *Sweep::moving_vertex(int32_t i) {
+    uint32_t &mark = moving->placed_stamp[i + 1];
+    double *out = &moving->placed[3 * i];
+    if (mark != stamp) {
+        const double *p = moving->vertex(i);
+        out[0] = cos_ * p[0] - sin_ * p[1] + du;
+        out[1] = sin_ * p[0] + cos_ * p[1] + dw;
+        out[2] = p[2] + dh;
+        mark = stamp;
+    }
+    return out;
+}
+
+// Bounds of the gap along d between fixed node a and moving node b over their shadows'
+// overlap; false when the shadows do not overlap or a node has no triangle taking part.
+bool Sweep::node_bounds(int a, int b, double &lo, double &hi) {
+    const Bound &A = fixed->bound(a), &B = moving->bound(b);
+    if (A.low > A.high || B.low > B.high) return false;
+    double cx = 0.5 * (B.lo[0] + B.hi[0]), cy = 0.5 * (B.lo[1] + B.hi[1]);
+    double ex = 0.5 * (B.hi[0] - B.lo[0]), ey = 0.5 * (B.hi[1] - B.lo[1]);
+    double x = cos_ * cx - sin_ * cy + du, y = sin_ * cx + cos_ * cy + dw;
+    double rx = std::fabs(cos_) * ex + std::fabs(sin_) * ey;
+    double ry = std::fabs(sin_) * ex + std::fabs(cos_) * ey;
+    double x0 = std::max(A.lo[0], x - rx), x1 = std::min(A.hi[0], x + rx);
+    double y0 = std::max(A.lo[1], y - ry), y1 = std::min(A.hi[1], y + ry);
+    if (x0 > x1 || y0 > y1) return false;
+    // the moving node's plane in the fixed view: h = g . q + c
+    double g0 = cos_ * B.g[0] - sin_ * B.g[1], g1 = sin_ * B.g[0] + cos_ * B.g[1];
+    double c = dh - g0 * du - g1 * dw;
+    double s0 = A.g[0] - g0, s1 = A.g[1] - g1;
+    double least = kInf, most = -kInf;
+    const double xs[2] = {x0, x1}, ys[2] = {y0, y1};
+    for (double px : xs)
+        for (double py : ys) {
+            double v = s0 * px + s1 * py - c;
+            least = std::min(least, v);
+            most = std::max(most, v);
+        }
+    lo = least + A.low - B.high;
+    hi = most + A.high - B.low;
+    return true;
+}
+
+// q inside triangle (p0, p1, p2) of the plane (edges included): the height there
+inline bool height_at(const double *p0, const double *p1, const double *p2, double qx, double qy,
+                      double &h) {
+    double area = cross2(p1[0] - p0[0], p1[1] - p0[1], p2[0] - p0[0], p2[1] - p0[1]);
+    if (area == 0.0) return false;
+    double l1 = cross2(qx - p0[0], qy - p0[1], p2[0] - p0[0], p2[1] - p0[1]) / area;
+    double l2 = cross2(p1[0] - p0[0], p1[1] - p0[1], qx - p0[0], qy - p0[1]) / area;
+    double l0 = 1.0 - l1 - l2;
+    if (l0 < 0.0 || l1 < 0.0 || l2 < 0.0) return false;
+    h = l0 * p0[2] + l1 * p1[2] + l2 * p2[2];
+    return true;
+}
+
+// The fifteen features of one pair of triangles seen along d (A moving, B fixed, each
+// vertex (u, w, h)): the least and the largest gap along d over the overlap of their shadows
+// and which feature gives the least (kind -1: the shadows do not overlap).
+struct PairGap {
+    double least = kInf, most = -kInf, at = 0.0, room = 0.0;
+    int kind = -1, i_at = 0, j_at = 0;
+
+    PairGap(const double *const A[3], const double *const B[3]);
+};
+
+PairGap::PairGap(const double *const A[3], const double *const B[3]) {
+    double h;
+    for (int i = 0; i < 3; ++i)
+        if (height_at(B[0], B[1], B[2], A[i][0], A[i][1], h)) {
+            double gap = h - A[i][2];
+            if (gap < least) { least = gap; kind = 0; i_at = i; }
+            most = std::max(most, gap);
+        }
+    for (int j = 0; j < 3; ++j)
+        if (height_at(A[0], A[1], A[2], B[j][0], B[j][1], h)) {
+            double gap = B[j][2] - h;
+            if (gap < least) { least = gap; kind = 1; j_at = j; }
+            most = std::max(most, gap);
+        }
+    for (int i = 0; i < 3; ++i) {
+        const double *a0 = A[i], *a1 = A[(i + 1) % 3];
+        double ax = a1[0] - a0[0], ay = a1[1] - a0[1];
+        for (int j = 0; j < 3; ++j) {
+            const double *b0 = B[j], *b1 = B[(j + 1) % 3];
+            double bx = b1[0] - b0[0], by = b1[1] - b0[1];
+            double den = cross2(ax, ay, bx, by);
+            if (den == 0.0) continue;
+            double cx = b0[0] - a0[0], cy = b0[1] - a0[1];
+            double s = cross2(cx, cy, bx, by) / den, r = cross2(cx, cy, ax, ay) / den;
+            if (s < 0.0 || s > 1.0 || r < 0.0 || r > 1.0) continue;
+            double gap = (b0[2] + r * (b1[2] - b0[2])) - (a0[2] + s * (a1[2] - a0[2]));
+            if (gap < least) {
+                least = gap; kind = 2; i_at = i; j_at = j; at = s;
+                double la = std::sqrt(ax * ax + ay * ay), lb = std::sqrt(bx * bx + by * by);
+                room = std::fabs(den) * std::min(std::min(s, 1.0 - s) / lb, std::min(r, 1.0 - r) / la);
+            }
+            most = std::max(most, gap);
+        }
+    }
+}
+
+void Sweep::triangle_pair(int32_t ta, int32_t tb) {
+    ++pairs;
+    const Body &mb = *moving->body, &fb = *fixed->body;
+    const int32_t *fa = &mb.faces[3 * ta], *ff = &fb.faces[3 * tb];
+    const double *A[3] = {moving_vertex(fa[0]), moving_vertex(fa[1]), moving_vertex(fa[2])};
+    const double *B[3] = {fixed->vertex(ff[0]), fixed->vertex(ff[1]), fixed->vertex(ff[2])};
+    // cheap rejections first: shadows' boxes apart, or every point of B further along d
+    // than every point of A by more than the cutoff
+    for (int k = 0; k < 2; ++k) {
+        double alo = std::min(std::min(A[0][k], A[1][k]), A[2][k]);
+        double ahi = std::max(std::max(A[0][k], A[1][k]), A[2][k]);
+        double blo = std::min(std::min(B[0][k], B[1][k]), B[2][k]);
+        double bhi = std::max(std::max(B[0][k], B[1][k]), B[2][k]);
+        if (ahi < blo || bhi < alo) return;
+    }
+    double alow = std::min(std::min(A[0][2], A[1][2]), A[2][2]);
+    double ahigh = std::max(std::max(A[0][2], A[1][2]), A[2][2]);
+    double blow = std::min(std::min(B[0][2], B[1][2]), B[2][2]);
+    double bhigh = std::max(std::max(B[0][2], B[1][2]), B[2][2]);
+    if (blow - ahigh > cutoff() || bhigh - alow < -behind) return;
+    PairGap g(A, B);
+    double least = g.least, most = g.most, at = g.at, room = g.room;
+    int kind = g.kind, i_at = g.i_at, j_at = g.j_at;
+    if (kind < 0 || most < -behind) return;      // shadows apart, or wholly behind
+    if (least <= -behind) { buried = true; return; }
+    if (least > cutoff()) return;
+    if (least < best) best = least;
+    if (!want_features) return;
+    Feature f;
+    f.gap = least;
+    f.room = room;
+    f.kind = kind;
+    f.moving_face = mb.face_id[ta];
+    f.fixed_face = fb.face_id[tb];
+    double world[3][3];                        // the moving triangle in the fixed frame
+    for (int c = 0; c < 3; ++c) {
+        const double *p = &mb.vertices[3 * fa[c]];
+        for (int k = 0; k < 3; ++k) world[c][k] = R[3 * k] * p[0] + R[3 * k + 1] * p[1] + R[3 * k + 2] * p[2] + T[k];
+    }
+    const double *d = fixed->d;
+    double n[3];
+    if (kind == 0) {
+        for (int k = 0; k < 3; ++k) { n[k] = fb.normals[3 * tb + k]; f.point[k] = world[i_at][k]; }
+        room = edge_distance(B[0], B[1], B[2], A[i_at][0], A[i_at][1]);
+    } else if (kind == 1) {
+        room = edge_distance(A[0], A[1], A[2], B[j_at][0], B[j_at][1]);
+        const double *q = &fb.vertices[3 * ff[j_at]], *m = &mb.normals[3 * ta];
+        for (int k = 0; k < 3; ++k) {
+            n[k] = R[3 * k] * m[0] + R[3 * k + 1] * m[1] + R[3 * k + 2] * m[2];
+            f.point[k] = q[k] - least * d[k];
+        }
+    } else {
+        const double *a0 = world[i_at], *a1 = world[(i_at + 1) % 3];
+        const double *b0 = &fb.vertices[3 * ff[j_at]], *b1 = &fb.vertices[3 * ff[(j_at + 1) % 3]];
+        double ea[3], eb[3];
+        for (int k = 0; k < 3; ++k) { ea[k] = a1[k] - a0[k]; eb[k] = b1[k] - b0[k]; f.point[k] = a0[k] + at * ea[k]; }
+        n[0] = ea[1] * eb[2] - ea[2] * eb[1];
+        n[1] = ea[2] * eb[0] - ea[0] * eb[2];
+        n[2] = ea[0] * eb[1] - ea[1] * eb[0];
+        double length = std::sqrt(dot3(n, n));
+        for (int k = 0; k < 3; ++k) n[k] = length > 0.0 ? n[k] / length : 0.0;
+    }
+    double sign = dot3(n, d) >= 0.0 ? 1.0 : -1.0;
+    for (int k = 0; k < 3; ++k) f.normal[k] = sign * n[k];
+    features.push_back(f);
+}
+
+void Sweep::run() {
+    best = kInf;
+    buried = false;
+    features.clear();
+    const Body &fb = *fixed->body, &mb = *moving->body;
+    if (fb.nodes.empty() || mb.nodes.empty()) return;
+    // depth first, the child pair with the lower bound first: the first leaves reached set
+    // a tight cutoff early, and a stack costs far less than a heap per visit
+    std::vector<Visit> &stack = visits;
+    stack.clear();
+    double lo, hi;
+    if (!node_bounds(0, 0, lo, hi) || hi < -behind) return;
+    stack.push_back({0, 0, lo});
+    while (!stack.empty()) {
+        Visit v = stack.back();
+        stack.pop_back();
+        if (v.lo > cutoff()) continue;
+        const Node &na = fb.nodes[v.a], &nb = mb.nodes[v.b];
+        if (na.right < 0 && nb.right < 0) {
+            for (int i = na.first; i < na.first + na.count; ++i) {
+                if (!fixed->takes_part(i)) continue;
+                for (int j = nb.first; j < nb.first + nb.count; ++j) {
+                    if (!moving->takes_part(j)) continue;
+                    triangle_pair(j, i);
+                    if (buried) return;
+                }
+            }
+            continue;
+        }
+        // open the node whose shadow is wider (a leaf is never opened)
+        const Bound &A = fixed->bound(v.a), &B = moving->bound(v.b);
+        double wa = (A.hi[0] - A.lo[0]) + (A.hi[1] - A.lo[1]);
+        double wb = (B.hi[0] - B.lo[0]) + (B.hi[1] - B.lo[1]);
+        bool open_fixed = nb.right < 0 || (na.right >= 0 && wa >= wb);
+        int kids[2] = {open_fixed ? v.a + 1 : v.b + 1, open_fixed ? na.right : nb.right};
+        Visit next[2];
+        int n = 0;
+        for (int kid : kids) {
+            int a = open_fixed ? kid : v.a, b = open_fixed ? v.b : kid;
+            if (node_bounds(a, b, lo, hi) && hi >= -behind && lo <= cutoff())
+                next[n++] = {a, b, lo};
+        }
+        if (n == 2 && next[0].lo < next[1].lo) std::swap(next[0], next[1]);
+        for (int k = 0; k < n; ++k) stack.push_back(next[k]);
+    }
+}
+
+// ---- Python -----------------------------------------------------------------------------
+
+struct PyBody {
+    PyObject_HEAD
+    Body *body;
+};
+
+struct PyView {
+    PyObject_HEAD
+    View *view;
+    PyObject *body;     // keeps the Body alive
+};
+
+PyTypeObject BodyType = {PyVarObject_HEAD_INIT(nullptr, 0)};
+PyTypeObject ViewType = {PyVarObject_HEAD_INIT(nullptr, 0)};
+
+// a C-contiguous buffer of `count` items of `format` ("d", "q" or "b"), else a TypeError
+bool get_buffer(PyObject *obj, Py_buffer *view, const char *format, Py_ssize_t itemsize,
+                const char *what) {
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return false;
+    const char *f = view->format ? view->format : "B";
+    if (*f == '<' || *f == '=' || *f == '@') ++f;
+    bool ok = view->itemsize == itemsize &&
+              (std::strcmp(f, format) == 0 || (itemsize == 8 && *format == 'q' && std::strcmp(f, "l") == 0));
+    if (!ok) {
+        PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous buffer of format '%s'", what, format);
+        PyBuffer_Release(view);
+        return false;
+    }
+    return true;
+}
+
+void body_dealloc(PyBody *self) {
+    delete self->body;
+    Py_TYPE(self)->tp_free(reinterpret_cast<PyObject *>(self));
+}
+
+int body_init(PyBody *self, PyObject *args, PyObject *) {
+    PyObject *vo, *fo, *so;
+    if (!PyArg_ParseTuple(args, "OOO", &vo, &fo, &so)) return -1;
+    Py_buffer vb, fb, sb;
+    if (!get_buffer(vo, &vb, "d", 8, "vertices")) return -1;
+    if (!get_buffer(fo, &fb, "q", 8, "faces")) { PyBuffer_Release(&vb); return -1; }
+    if (!get_buffer(so, &sb, "b", 1, "facing")) { PyBuffer_Release(&vb); PyBuffer_Release(&fb); return -1; }
+    Py_ssize_t nv = vb.len / 24, nf = fb.len / 24;
+    int ok = vb.len % 24 == 0 && fb.len % 24 == 0 && sb.len == nf;
+    const int64_t *faces = static_cast<const int64_t *>(fb.buf);
+    for (Py_ssize_t i = 0; ok && i < 3 * nf; ++i) ok = faces[i] >= 0 && faces[i] < nv;
+    if (!ok) {
+        PyErr_SetString(PyExc_ValueError, "Body: vertices (n, 3), faces (m, 3) indexing them, facing (m,)");
+    } else {
+        delete self->body;
+        self->body = new Body();
+        make_body(*self->body, static_cast<const double *>(vb.buf), nv, faces, nf,
+                  static_cast<const int8_t *>(sb.buf));
+    }
+    PyBuffer_Release(&vb); PyBuffer_Release(&fb); PyBuffer_Release(&sb);
+    return ok ? 0 : -1;
+}
+
+void view_dealloc(PyView *self) {
+    delete self->view;
+    Py_XDECREF(self->body);
+    Py_TYPE(self)->tp_free(reinterpret_cast<PyObject *>(self));
+}
+
+int view_init(PyView *self, PyObject *args, PyObject *) {
+    PyObject *bo, *dobj;
+    int side;
+    if (!PyArg_ParseTuple(args, "O!Oi", &BodyType, &bo, &dobj, &side)) return -1;
+    Py_buffer db;
+    if (!get_buffer(dobj, &db, "d", 8, "direction")) return -1;
+    const double *d = static_cast<const double *>(db.buf);
+    bool ok = db.len == 24 && std::fabs(dot3(d, d) - 1.0) < 1e-9 && (side == 1 || side == -1) &&
+              reinterpret_cast<PyBody *>(bo)->body != nullptr;
+    if (ok) {
+        delete self->view;
+        self->view = new View(*reinterpret_cast<PyBody *>(bo)->body, d, side);
+        size_t nv = self->view->body->vertices.size() / 3;
+        self->view->placed.resize(3 * nv);
+        self->view->placed_stamp.assign(nv + 1, 0);
+        Py_INCREF(bo);
+        Py_XDECREF(self->body);
+        self->body = bo;
+    } else {
+        PyErr_SetString(PyExc_ValueError, "View: a unit direction (3,) and side +1 or -1");
+    }
+    PyBuffer_Release(&db);
+    return ok ? 0 : -1;
+}
+
+PyObject *view_filled(PyView *self, PyObject *) {
+    if (!self->view) Py_RETURN_NONE;
+    long n = 0;
+    for (uint8_t b : self->view->has_bound) n += b;
+    return PyLong_FromLong(n);
+}
+
+PyMethodDef view_methods[] = {
+    {"filled", reinterpret_cast<PyCFunction>(view_filled), METH_NOARGS, "Nodes bounded so far."},
+    {nullptr, nullptr, 0, nullptr}};
+
+bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window) {
+    PyObject *fo, *mo, *po;
+    if (!PyArg_ParseTuple(args, "O!O!Oddd", &ViewType, &fo, &ViewType, &mo, &po, &s.behind, &window, &s.limit))
+        return false;
+    s.fixed = reinterpret_cast<PyView *>(fo)->view;
+    s.moving = reinterpret_cast<PyView *>(mo)->view;
+    if (!s.fixed || !s.moving) { PyErr_SetString(PyExc_ValueError, "uninitialised view"); return false; }
+    if (s.fixed->side != -1 || s.moving->side != 1) {
+        PyErr_SetString(PyExc_ValueError, "the fixed view has side -1, the moving view side +1");
+        return false;
+    }
+    if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
+    if (poses.len % 128 != 0 || !(s.behind >= 0.0) || !(window >= 0.0) || !(s.limit >= 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "poses (k, 4, 4); behind, window and limit not negative");
+        PyBuffer_Release(&poses);
+        return false;
+    }
+    count = poses.len / 128;
+    return true;
+}
+
+// travels(fixed_view, moving_view, poses, behind, window, limit) -> (travels, buried, pairs)
+PyObject *travels(PyObject *, PyObject *args) {
+    Sweep s;
+    Py_buffer poses;
+    Py_ssize_t count;
+    double window;
+    if (!parse_sweep(args, s, poses, count, window)) return nullptr;
+    s.window = 0.0;
+    std::vector<double> out(count);
+    std::vector<int8_t> buried(count);
+    const double *p = static_cast<const double *>(poses.buf);
+    for (Py_ssize_t i = 0; i < count; ++i) {
+        s.place(p + 16 * i);
+        s.run();
+        out[i] = s.buried ? -kInf : s.best;
+        buried[i] = s.buried;
+    }
+    PyBuffer_Release(&poses);
+    return Py_BuildValue("(y#y#l)", reinterpret_cast<const char *>(out.data()), count * 8,
+                         reinterpret_cast<const char *>(buried.data()), count, s.pairs);
+}
+
+// contacts(fixed_view, moving_view, pose, behind, window, limit)
+//   -> (travel, buried, features (bytes of Feature), pairs)
+PyObject *contacts(PyObject *, PyObject *args) {
+    Sweep s;
+    Py_buffer poses;
+    Py_ssize_t count;
+    double window;
+    if (!parse_sweep(args, s, poses, count, window)) return nullptr;
+    if (count != 1) {
+        PyBuffer_Release(&poses);
+        PyErr_SetString(PyExc_ValueError, "contacts: one pose (4, 4)");
+        return nullptr;
+    }
+    s.window = window;
+    s.want_features = true;
+    s.place(static_cast<const double *>(poses.buf));
+    s.run();
+    PyBuffer_Release(&poses);
+    std::vector<Feature> kept;
+    if (!s.buried)
+        for (const Feature &f : s.features)
+            if (f.gap <= s.best + window) kept.push_back(f);
+    static const char nothing = 0;
+    return Py_BuildValue("(dNy#l)", s.buried ? -kInf : s.best, PyBool_FromLong(s.buried),
+                         kept.empty() ? &nothing : reinterpret_cast<const char *>(kept.data()),
+                         static_cast<Py_ssize_t>(kept.size() * sizeof(Feature)), s.pairs);
+}
+
+// witnesses(fixed_view, moving_view, poses (m, 4, 4), pairs (m, k, 2) of (moving face,
+// fixed face) as given, behind) -> (m, k) the least gap of each pair at its pose (inf: the
+// shadows do not overlap or the pair lies wholly behind the pose lowered by `behind`)
+PyObject *witnesses(PyObject *, PyObject *args) {
+    PyObject *fo, *mo, *po, *qo;
+    double behind;
+    if (!PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &qo, &behind)) return nullptr;
+    Sweep s;
+    s.fixed = reinterpret_cast<PyView *>(fo)->view;
+    s.moving = reinterpret_cast<PyView *>(mo)->view;
+    if (!s.fixed || !s.moving || s.fixed->side != -1 || s.moving->side != 1) {
+        PyErr_SetString(PyExc_ValueError, "a fixed view (side -1) and a moving view (side +1)");
+        return nullptr;
+    }
+    Py_buffer poses, pairs;
+    if (!get_buffer(po, &poses, "d", 8, "poses")) return nullptr;
+    if (!get_buffer(qo, &pairs, "q", 8, "pairs")) { PyBuffer_Release(&poses); return nullptr; }
+    Py_ssize_t m = poses.len / 128, k = m > 0 ? pairs.len / (16 * m) : 0;
+    const Body &mb = *s.moving->body, &fb = *s.fixed->body;
+    const int64_t *q = static_cast<const int64_t *>(pairs.buf);
+    bool ok = poses.len % 128 == 0 && pairs.len == 16 * m * k;
+    Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
+    for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = q[2 * i] >= 0 && q[2 * i] < nm && q[2 * i + 1] >= 0 && q[2 * i + 1] < nf;
+    if (!ok) {
+        PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
+        PyErr_SetString(PyExc_ValueError, "witnesses: poses (m, 4, 4) and pairs (m, k, 2) of face indices");
+        return nullptr;
+    }
+    std::vector<double> out(m * k);
+    const double *p = static_cast<const double *>(poses.buf);
+    for (Py_ssize_t i = 0; i < m; ++i) {
+        s.place(p + 16 * i);
+        for (Py_ssize_t j = 0; j < k; ++j) {
+            const int64_t *pair = q + 2 * (i * k + j);
+            const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
+            const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
+            const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
+            PairGap g(A, B);
+            out[i * k + j] = g.kind < 0 || g.most < -behind ? kInf : g.least;
+        }
+    }
+    PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
+    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), static_cast<Py_ssize_t>(out.size() * 8));
+}
+
+// The least gap along d from the moving body's vertex `i` (placed by the sweep) up to a
+// front face of the fixed body, over faces no more than `behind` below it (inf: none).
+double vertex_gap(Sweep &s, int32_t i, double behind, std::vector<int32_t> &stack) {
+    const double *q = s.moving_vertex(i);
+    const Body &fb = *s.fixed->body;
+    double best = kInf;
+    stack.clear();
+    stack.push_back(0);
+    while (!stack.empty()) {
+        int index = stack.back();
+        stack.pop_back();
+        const Bound &b = s.fixed->bound(index);
+        if (b.low > b.high || q[0] < b.lo[0] || q[0] > b.hi[0] || q[1] < b.lo[1] || q[1] > b.hi[1])
+            continue;
+        double plane = b.g[0] * q[0] + b.g[1] * q[1] - q[2];
+        if (plane + b.high < -behind || plane + b.low >= best) continue;
+        const Node &node = fb.nodes[index];
+        if (node.right >= 0) {
+            stack.push_back(index + 1);
+            stack.push_back(node.right);
+            continue;
+        }
+        for (int t = node.first; t < node.first + node.count; ++t) {
+            if (!s.fixed->takes_part(t)) continue;
+            const int32_t *f = &fb.faces[3 * t];
+            double h;
+            if (height_at(s.fixed->vertex(f[0]), s.fixed->vertex(f[1]), s.fixed->vertex(f[2]), q[0], q[1], h)) {
+                double gap = h - q[2];
+                if (gap >= -behind && gap < best) best = gap;
+            }
+        }
+    }
+    return best;
+}
+
+// vertex_gaps(fixed_view, moving_view, poses (m, 4, 4), vertices (m, k) of the moving body,
+// behind) -> (m,) the least gap along d from those vertices up to the fixed body at each
+// pose (a vertex lying on a face more than `behind` above the face does not count)
+PyObject *vertex_gaps(PyObject *, PyObject *args) {
+    PyObject *fo, *mo, *po, *vo;
+    double behind;
+    if (!PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &vo, &behind)) return nullptr;
+    Sweep s;
+    s.fixed = reinterpret_cast<PyView *>(fo)->view;
+    s.moving = reinterpret_cast<PyView *>(mo)->view;
+    if (!s.fixed || !s.moving || s.fixed->side != -1 || s.moving->side != 1) {
+        PyErr_SetString(PyExc_ValueError, "a fixed view (side -1) and a moving view (side +1)");
+        return nullptr;
+    }
+    Py_buffer poses, verts;
+    if (!get_buffer(po, &poses, "d", 8, "poses")) return nullptr;
+    if (!get_buffer(vo, &verts, "q", 8, "vertices")) { PyBuffer_Release(&poses); return nullptr; }
+    Py_ssize_t m = poses.len / 128, k = m > 0 ? verts.len / (8 * m) : 0;
+    const int64_t *v = static_cast<const int64_t *>(verts.buf);
+    Py_ssize_t nv = static_cast<Py_ssize_t>(s.moving->body->vertices.size() / 3);
+    bool ok = poses.len % 128 == 0 && verts.len == 8 * m * k;
+    for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = v[i] >= 0 && v[i] < nv;
+    if (!ok || s.fixed->body->nodes.empty()) {
+        PyBuffer_Release(&poses); PyBuffer_Release(&verts);
+        if (!ok) {
+            PyErr_SetString(PyExc_ValueError, "vertex_gaps: poses (m, 4, 4) and vertices (m, k)");
+            return nullptr;
+        }
+        std::vector<double> none(m, kInf);
+        return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(none.data()), m * 8);
+    }
+    std::vector<double> out(m, kInf);
+    std::vector<int32_t> stack;
+    const double *p = static_cast<const double *>(poses.buf);
+    for (Py_ssize_t i = 0; i < m; ++i) {
+        s.place(p + 16 * i);
+        for (Py_ssize_t j = 0; j < k; ++j)
+            out[i] = std::min(out[i], vertex_gap(s, static_cast<int32_t>(v[i * k + j]), behind, stack));
+    }
+    PyBuffer_Release(&poses); PyBuffer_Release(&verts);
+    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), m * 8);
+}
+
+PyMethodDef module_methods[] = {
+    {"vertex_gaps", vertex_gaps, METH_VARARGS,
+     "vertex_gaps(fixed_view, moving_view, poses, vertices, behind) -> least gap at each pose"},
+    {"witnesses", witnesses, METH_VARARGS,
+     "witnesses(fixed_view, moving_view, poses, pairs, behind) -> least gap of each pair at its pose"},
+    {"travels", travels, METH_VARARGS,
+     "travels(fixed_view, moving_view, poses, behind, window, limit) -> (travels, buried, pairs)"},
+    {"contacts", contacts, METH_VARARGS,
+     "contacts(fixed_view, moving_view, pose, behind, window, limit) -> (travel, buried, features, pairs)"},
+    {nullptr, nullptr, 0, nullptr}};
+
+PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_sweep",
+                          "Exact travel of a triangle mesh along a direction onto another.", -1,
+                          module_methods};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__sweep() {
+    BodyType.tp_name = "kneeseat_core.meshes._sweep.Body";
+    BodyType.tp_doc = "Body(vertices, faces, facing): a mesh and its hierarchy";
+    BodyType.tp_basicsize = sizeof(PyBody);
+    BodyType.tp_flags = Py_TPFLAGS_DEFAULT;
+    BodyType.tp_new = PyType_GenericNew;
+    BodyType.tp_init = reinterpret_cast<initproc>(body_init);
+    BodyType.tp_dealloc = reinterpret_cast<destructor>(body_dealloc);
+    ViewType.tp_name = "kneeseat_core.meshes._sweep.View";
+    ViewType.tp_doc = "View(body, direction, side): a body seen along a direction";
+    ViewType.tp_basicsize = sizeof(PyView);
+    ViewType.tp_flags = Py_TPFLAGS_DEFAULT;
+    ViewType.tp_new = PyType_GenericNew;
+    ViewType.tp_init = reinterpret_cast<initproc>(view_init);
+    ViewType.tp_dealloc = reinterpret_cast<destructor>(view_dealloc);
+    ViewType.tp_methods = view_methods;
+    if (PyType_Ready(&BodyType) < 0 || PyType_Ready(&ViewType) < 0) return nullptr;
+    PyObject *m = PyModule_Create(&module_def);
+    if (!m) return nullptr;
+    Py_INCREF(&BodyType);
+    Py_INCREF(&ViewType);
+    if (PyModule_AddObject(m, "Body", reinterpret_cast<PyObject *>(&BodyType)) < 0 ||
+        PyModule_AddObject(m, "View", reinterpret_cast<PyObject *>(&ViewType)) < 0) {
+        Py_DECREF(m);
+        return nullptr;
+    }
+    return m;
+}

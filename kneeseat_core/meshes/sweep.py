@@ -1,0 +1,233 @@
+"""The travel along the push measured exactly, and the contact features where it ends.
+
+How far a moving body can go along a direction Δ before it first touches a fixed body is
+the least gap along Δ over every pair of triangles whose shadows (seen along Δ) overlap; two
+flat triangles first meet at a vertex of one on the face of the other or at an edge across
+an edge, so every candidate is one of those fifteen features a pair has, and each is
+computed exactly (`_sweep.cpp`, compiled with the package: a bounding volume hierarchy per
+body, bounded seen along Δ by planes, so conforming surfaces prune to the few pairs near
+contact). The same query returns every feature that closes within a window beyond the
+first contact: its gap, the normal it closes along and the point of the moving body
+there, from which the travel after a small lateral move follows to first order (the
+settle's model of the travel, `kneeseat_core.settle.climb`).
+
+The travel is measured from a pose lowered along -Δ by `behind`: a pose that a lateral move
+left in collision by less than that has a negative travel (the first contact from below);
+one that collides even lowered that far is reported `buried` and the caller lowers
+further. Only triangles facing the other body take part where a surface is closed (a ray
+from outside enters through a front face); an open surface (a cartilage sheet) takes part
+with both faces.
+
+python-fcl stays the judge where it matters (a start in collision, the end of a settle, the
+referee): its booleans and this travel agree to the nanometre on the knees
+(test/test_sweep.py).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import weakref
+
+import numpy as np
+import trimesh
+
+from kneeseat_core.typed import Floats, Ints, Pose
+from . import _sweep
+from .collision import RigidBody
+
+__all__ = ['SweepBody', 'SweepPair', 'Touch', 'sweep_body', 'facing']
+
+# A view of a body is kept per direction, the direction rounded to this (rad): the moving
+# body's direction in its own frame stays put while it spins about Δ, up to rounding.
+_SAME_DIRECTION = 1e-12
+_VIEWS_KEPT = 8
+
+# The layout of one feature from `_sweep.contacts` (a C struct: gap, normal, point, kind,
+# moving face, fixed face).
+_FEATURE = np.dtype([('gap', '<f8'), ('normal', '<f8', 3), ('point', '<f8', 3),
+                     ('room', '<f8'), ('kind', '<i8'), ('moving_face', '<i8'),
+                     ('fixed_face', '<i8')])
+
+
+def facing(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(m,) int8 per face: +1 where its winding's normal points out of a closed surface, -1
+    where it points in (a surface wound inside out), 0 where the face's surface is not
+    closed (both its sides can be met). A surface is a set of faces joined along edges; it
+    is closed when each of its edges is one face's and, reversed, exactly one other's."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if len(faces) == 0:
+        return np.zeros(0, dtype=np.int8)
+    n = int(faces.max()) + 1
+    directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    key = directed[:, 0] * n + directed[:, 1]
+    reverse = directed[:, 1] * n + directed[:, 0]
+    order = np.argsort(key, kind='stable')
+    sorted_keys = key[order]
+    once = np.ones(len(key), dtype=bool)          # this directed edge occurs once only
+    repeated = sorted_keys[1:] == sorted_keys[:-1]
+    once[order[1:][repeated]] = False
+    once[order[:-1][repeated]] = False
+    at = np.searchsorted(sorted_keys, reverse)
+    matched = (at < len(sorted_keys)) & (sorted_keys[np.minimum(at, len(key) - 1)] == reverse)
+    good = (once & matched).reshape(-1, 3).all(axis=1)
+    labels = _surfaces(faces, len(faces))
+    closed = np.ones(int(labels.max()) + 1, dtype=bool)
+    np.logical_and.at(closed, labels, good)
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    signed = np.einsum('ij,ij->i', v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]]))
+    volume = np.zeros(len(closed))
+    np.add.at(volume, labels, signed)
+    out = np.where(closed[labels], np.where(volume[labels] >= 0.0, 1, -1), 0)
+    return out.astype(np.int8)
+
+
+def _surfaces(faces: Ints, count: int) -> Ints:
+    """(m,) label of the surface (faces joined along shared edges) of each face."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    edges = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(count), 3)
+    _, inverse = np.unique(edges, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind='stable')
+    same = inverse[order][1:] == inverse[order][:-1]
+    a, b = owner[order][:-1][same], owner[order][1:][same]
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(count, count))
+    _, labels = connected_components(graph, directed=False)
+    return np.asarray(labels, dtype=np.int64)
+
+
+class SweepBody:
+    """One body's hierarchy for the exact travel (built once per body and process) and its
+    views, one per direction asked (kept for the last few directions)."""
+
+    def __init__(self, body: RigidBody) -> None:
+        self.faces = body.faces
+        self.facing = facing(body.mesh)
+        self.native = _sweep.Body(np.ascontiguousarray(body.vertices, dtype=np.float64),
+                                  np.ascontiguousarray(body.faces, dtype=np.int64),
+                                  np.ascontiguousarray(self.facing))
+        self._views: dict[tuple[int, int, int, int], _sweep.View] = {}
+
+    def view(self, direction: Floats, side: int) -> _sweep.View:
+        """The body seen along the unit `direction` (its own frame): `side` +1 for the
+        moving body (its faces facing +direction take part), -1 for the fixed body."""
+        key = (side, *(int(round(float(c) / _SAME_DIRECTION)) for c in direction))
+        found = self._views.get(key)   # type: ignore[arg-type]
+        if found is None:
+            if len(self._views) >= _VIEWS_KEPT:
+                del self._views[next(iter(self._views))]
+            unit = np.ascontiguousarray(direction / np.linalg.norm(direction), dtype=np.float64)
+            found = self._views[key] = _sweep.View(self.native, unit, side)   # type: ignore[index]
+        return found
+
+
+_SWEEP_BODIES: weakref.WeakKeyDictionary[RigidBody, SweepBody] = weakref.WeakKeyDictionary()
+
+
+def sweep_body(body: RigidBody) -> SweepBody:
+    """The body's `SweepBody`, built on first use and kept while the body lives."""
+    found = _SWEEP_BODIES.get(body)
+    if found is None:
+        found = _SWEEP_BODIES[body] = SweepBody(body)
+    return found
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Touch:
+    """The travel from one pose and the features that close within a window beyond it."""
+
+    travel: float           # m along Δ from the pose (inf: no contact; -inf: buried)
+    buried: bool            # the pose lowered by `behind` is in collision: lower further
+    gaps: Floats            # (k,) m along Δ from the pose, each feature's
+    normals: Floats         # (k, 3) unit, n . Δ >= 0: a gap changes by -n . dp / n . Δ
+    points: Floats          # (k, 3) the moving body's point at each feature, fixed frame
+    rooms: Floats           # (k,) m: how far a slide keeps each feature one (its domain)
+    kinds: Ints             # (k,) 0: moving vertex on fixed face, 1: the reverse, 2: edges
+    faces: Ints             # (k, 2) the triangles (moving, fixed) of each feature
+
+
+@dataclass(slots=True, eq=False)
+class SweepPair:
+    """The exact travel along Δ (fixed frame) of one settle's moving body onto its fixed
+    body, with counters."""
+
+    fixed: RigidBody
+    moving: RigidBody
+    push: Floats                      # (3,) unit Δ, fixed frame
+    queries: int = 0                  # poses asked
+    pairs: int = 0                    # triangle pairs evaluated
+    _fixed: SweepBody = field(init=False, repr=False)
+    _moving: SweepBody = field(init=False, repr=False)
+    _fixed_view: _sweep.View = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._fixed = sweep_body(self.fixed)
+        self._moving = sweep_body(self.moving)
+        self._fixed_view = self._fixed.view(self.push, -1)
+
+    def _moving_view(self, pose: Pose) -> _sweep.View:
+        return self._moving.view(pose[:3, :3].T @ self.push, 1)
+
+    def travels(self, poses: Floats, behind: float = 0.0,
+                limit: float = math.inf) -> tuple[Floats, np.ndarray]:
+        """The travel along Δ from each of `poses` (k, 4, 4) (inf: none within `limit`),
+        measured from each lowered by `behind` along -Δ; and (k,) True where that lowered
+        pose is itself in collision (travel -inf: lower further). The poses share one
+        orientation about Δ up to spins about it."""
+        poses = np.ascontiguousarray(poses, dtype=np.float64)
+        if len(poses) == 0:
+            return np.zeros(0), np.zeros(0, dtype=bool)
+        out, buried, pairs = _sweep.travels(self._fixed_view, self._moving_view(poses[0]),
+                                            poses, float(behind), 0.0, _finite(limit))
+        self.queries += len(poses)
+        self.pairs += pairs
+        return np.frombuffer(out, dtype=np.float64).copy(), \
+            np.frombuffer(buried, dtype=np.int8).astype(bool)
+
+    def touch(self, pose: Pose, behind: float = 0.0, window: float = 0.0,
+              limit: float = math.inf) -> Touch:
+        """The travel from `pose` (as `travels`) and the features closing within `window`
+        beyond it."""
+        pose = np.ascontiguousarray(pose, dtype=np.float64)
+        travel, buried, raw, pairs = _sweep.contacts(
+            self._fixed_view, self._moving_view(pose), pose, float(behind), float(window),
+            _finite(limit))
+        self.queries += 1
+        self.pairs += pairs
+        f = np.frombuffer(raw, dtype=_FEATURE)
+        return Touch(travel, bool(buried), f['gap'].copy(), f['normal'].copy(),
+                     f['point'].copy(), f['room'].copy(), f['kind'].copy(),
+                     np.column_stack([f['moving_face'], f['fixed_face']]))
+
+    def witnesses(self, poses: Floats, pairs: Ints, behind: float = 0.0) -> Floats:
+        """(m, k) the least gap along Δ of each pair of triangles `pairs` (m, k, 2) (moving
+        face, fixed face) with the body at its pose of `poses` (m, 4, 4): inf where their
+        shadows do not overlap or the pair lies wholly behind the pose lowered by `behind`.
+        The travel from a pose is no longer than any of its pairs' gaps: a gap short of
+        what a probe needs refutes the probe without a search."""
+        poses = np.ascontiguousarray(poses, dtype=np.float64)
+        pairs = np.ascontiguousarray(pairs, dtype=np.int64)
+        if len(poses) == 0 or pairs.shape[1] == 0:
+            return np.full(pairs.shape[:2], math.inf)
+        raw = _sweep.witnesses(self._fixed_view, self._moving_view(poses[0]), poses, pairs,
+                               float(behind))
+        return np.frombuffer(raw, dtype=np.float64).reshape(pairs.shape[:2]).copy()
+
+    def vertex_gaps(self, poses: Floats, vertices: Ints, behind: float) -> Floats:
+        """(m,) the least gap along Δ from the moving body's `vertices` (m, k) (indices) up
+        to a face of the fixed body, with the body at each of `poses` (m, 4, 4); a vertex
+        more than `behind` above a face does not count it. A vertex's gap is a contact (a
+        vertex on a face), so the travel from a pose is no longer than it."""
+        poses = np.ascontiguousarray(poses, dtype=np.float64)
+        vertices = np.ascontiguousarray(vertices, dtype=np.int64)
+        if len(poses) == 0 or vertices.shape[1] == 0:
+            return np.full(len(poses), math.inf)
+        raw = _sweep.vertex_gaps(self._fixed_view, self._moving_view(poses[0]), poses,
+                                 vertices, float(behind))
+        return np.frombuffer(raw, dtype=np.float64).copy()
+
+
+def _finite(limit: float) -> float:
+    """The engine's limit: a large finite number stands for none."""
+    return limit if math.isfinite(limit) else 1e300

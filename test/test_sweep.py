@@ -1,0 +1,280 @@
+"""The exact travel (`kneeseat_core.meshes.sweep`, compiled) against python-fcl.
+
+The referee of every travel here is a dichotomy on python-fcl's boolean query written in
+this file (nothing of the engine or of the settle): the engine's travel must be python-fcl's
+first collision to the dichotomy's tolerance. Scenes: the analytic ones of
+test/settle_cases.py (closed meshes), two prisms whose ridges meet edge across edge (no
+vertex touches), and, when the shared data is there, the total knee (closed) and the natural
+knee's open cartilage sheets. What the engine says refutes a move (a pair's or a vertex's gap
+short of what the move needs) must be a collision python-fcl finds.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from kneeseat_core.geometry import pose_from, rotation_about
+from kneeseat_core.meshes import CollisionPair, load_mesh, load_meshes, RigidBody, SweepPair
+from kneeseat_core.meshes import _sweep
+from kneeseat_core.meshes.sweep import facing
+import settle_cases as sc
+
+SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
+TOL_M = 1e-8              # the referee's dichotomy stops this close
+
+
+def fcl_travel(pair: CollisionPair, pose: np.ndarray, push: np.ndarray,
+               limit: float = 0.05) -> float:
+    """The travel along `push` from the free `pose` to python-fcl's first collision, by
+    steps of 0.1 mm and a dichotomy to TOL_M (inf: none within `limit`)."""
+    def hit(t: float) -> bool:
+        moved = pose.copy()
+        moved[:3, 3] += t * push
+        return pair.collides(moved)
+    assert not hit(0.0), 'the referee starts from a free pose'
+    lo, step = 0.0, 1e-4
+    while not hit(lo + step):
+        lo += step
+        if lo > limit:
+            return math.inf
+    hi = lo + step
+    while hi - lo > TOL_M:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if hit(mid) else (mid, hi)
+    return hi
+
+
+def lateral_poses(base: np.ndarray, push: np.ndarray, centre: np.ndarray, seed: int,
+                  n: int, slide_m: float, spin_deg: float) -> list[np.ndarray]:
+    """`n` seeded poses: `base` slid across `push` and spun about it through `centre`."""
+    rng = np.random.default_rng(seed)
+    e1 = np.cross(push, [1.0, 0.0, 0.0] if abs(push[0]) < 0.9 else [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(push, e1)
+    out = []
+    for _ in range(n):
+        turn = rotation_about(push, math.radians(rng.uniform(-spin_deg, spin_deg)))
+        pose = np.eye(4)
+        pose[:3, :3] = turn @ base[:3, :3]
+        pose[:3, 3] = turn @ (base[:3, 3] - centre) + centre \
+            + rng.uniform(-slide_m, slide_m) * e1 + rng.uniform(-slide_m, slide_m) * e2
+        out.append(pose)
+    return out
+
+
+def backed(pair: CollisionPair, pose: np.ndarray, push: np.ndarray) -> np.ndarray:
+    """`pose` moved back along -push until python-fcl finds it free (by 0.5 mm steps)."""
+    out = pose.copy()
+    while pair.collides(out):
+        out[:3, 3] -= 5e-4 * push
+    return out
+
+
+def check_agreement(fixed: RigidBody, moving: RigidBody, poses: list[np.ndarray],
+                    push: np.ndarray) -> None:
+    """Each pose's exact travel, alone and with the others in one call, is the referee's."""
+    pair = CollisionPair(fixed, moving)
+    sweep = SweepPair(fixed, moving, push)
+    free = [backed(pair, pose, push) for pose in poses]
+    together, buried = sweep.travels(np.array(free))
+    assert not buried.any()
+    for pose, got in zip(free, together):
+        want = fcl_travel(pair, pose, push)
+        alone = sweep.touch(pose, 0.0, 1e-4).travel
+        assert alone == got
+        if math.isinf(want):
+            assert math.isinf(got)
+            continue
+        assert abs(got - want) <= 2 * TOL_M, \
+            f'exact travel {got * 1e3:.7f} mm, python-fcl {want * 1e3:.7f} mm'
+
+
+def analytic_scene(name: str, seed: int, n: int
+                   ) -> tuple[RigidBody, RigidBody, np.ndarray, list[np.ndarray]]:
+    """The analytic scene `name` (rotated variant): its bodies, its unit push and `n`
+    seeded poses about its start, slid up to 3 mm and spun up to 8 deg."""
+    var = sc.variant(name, 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    centre = var.start[:3, :3] @ var.moving.centroid + var.start[:3, 3]
+    poses = lateral_poses(var.start, push, centre, seed=seed, n=n, slide_m=3e-3,
+                          spin_deg=8.0)
+    return var.fixed, var.moving, push, poses
+
+
+def total_knee(seed: int) -> tuple[RigidBody, RigidBody, np.ndarray, list[np.ndarray]]:
+    """The femoral component, the insert, the push (+Y) and 6 seeded poses of the insert
+    2 mm below its delivered pose, slid up to 2 mm and spun up to 4 deg."""
+    fixed = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'femoral_component.stl', 'm'))
+    moving = RigidBody.from_mesh(load_mesh(SHARED / 'tka_dm' / 'tibial_insert.stl', 'm'))
+    push = np.array([0.0, 1.0, 0.0])
+    start = pose_from(np.eye(3), np.array([0.0, -2e-3, 0.0]))
+    poses = lateral_poses(start, push, moving.centroid, seed=seed, n=6, slide_m=2e-3,
+                          spin_deg=4.0)
+    return fixed, moving, push, poses
+
+
+@pytest.mark.parametrize('name', sc.SCENES)
+def test_travel_is_python_fcl_first_collision_on_the_analytic_scenes(name: str) -> None:
+    fixed, moving, push, poses = analytic_scene(name, seed=3, n=8)
+    check_agreement(fixed, moving, poses, push)
+
+
+@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
+def test_travel_is_python_fcl_first_collision_on_the_total_knee() -> None:
+    fixed, moving, push, poses = total_knee(seed=5)
+    check_agreement(fixed, moving, poses, push)
+
+
+@pytest.mark.skipif(not (SHARED / 'natural_knee').is_dir(),
+                    reason='no shared natural knee data')
+def test_travel_is_python_fcl_first_collision_on_open_cartilage_sheets() -> None:
+    """Open sheets take part with both faces: the travel is python-fcl's all the same."""
+    data = SHARED / 'natural_knee'
+    fixed = RigidBody.from_mesh(load_meshes([str(data / 'femur_cartilage.stl'),
+                                             str(data / 'femur_bone.stl')], 'm', quiet=True))
+    moving = RigidBody.from_mesh(load_meshes([str(data / 'tibia_cartilage.stl'),
+                                              str(data / 'tibia_bone.stl')], 'm', quiet=True))
+    assert 0 in facing(fixed.mesh) and 1 in facing(fixed.mesh)
+    push = np.array([0.0, 1.0, 0.0])
+    start = pose_from(np.eye(3), np.array([0.0, -1e-3, 0.0]))
+    poses = lateral_poses(start, push, moving.centroid, seed=9, n=6, slide_m=1.5e-3,
+                          spin_deg=3.0)
+    check_agreement(fixed, moving, poses, push)
+
+
+def test_a_pose_in_collision_has_a_negative_travel_or_is_buried() -> None:
+    """From a pose 0.5 mm past contact, lowered by more than that, the travel is -0.5 mm;
+    lowered by less, the lowered pose is itself in collision: buried."""
+    var = sc.variant('sphere_bowl', 'plain')
+    push = var.push / np.linalg.norm(var.push)
+    pair = CollisionPair(var.fixed, var.moving)
+    free = backed(pair, var.start, push)
+    travel = fcl_travel(pair, free, push)
+    deep = free.copy()
+    deep[:3, 3] += (travel + 5e-4) * push
+    assert pair.collides(deep)
+    sweep = SweepPair(var.fixed, var.moving, push)
+    got, buried = sweep.travels(deep[None], behind=1e-3)
+    assert not buried[0] and abs(got[0] + 5e-4) <= 2 * TOL_M
+    got, buried = sweep.travels(deep[None], behind=1e-4)
+    assert buried[0] and got[0] == -math.inf
+
+
+def crossed_ridges(offset_m: float) -> tuple[RigidBody, RigidBody, np.ndarray, np.ndarray]:
+    """Two triangular prisms whose ridges cross at right angles, the moving one pointing
+    down onto the fixed one 0.1 mm above their first touch and moved `offset_m` along the
+    fixed ridge: the surfaces meet edge across edge, far from every vertex."""
+    def prism(along: str, height: float) -> trimesh.Trimesh:
+        points = [(s, a, z) if along == 'x' else (a, s, z) for s in (-0.03, 0.03)
+                  for a, z in ((-0.01, 0.0), (0.01, 0.0), (0.0, height))]
+        return trimesh.convex.convex_hull(np.array(points))
+    fixed = RigidBody.from_mesh(prism('x', 0.01))       # its ridge at z = 10 mm
+    moving = RigidBody.from_mesh(prism('y', -0.01))     # its ridge 10 mm below its origin
+    push = np.array([0.0, 0.0, -1.0])
+    return fixed, moving, push, pose_from(np.eye(3), np.array([offset_m, 0.0, 0.02 + 1e-4]))
+
+
+@pytest.mark.parametrize('offset_mm', [0.0, 3.7])
+def test_an_edge_across_an_edge_is_a_contact(offset_mm: float) -> None:
+    """No vertex touches where the ridges cross: the travel is the edges' first meeting,
+    0.1 mm, as python-fcl finds it, and the feature there is an edge across an edge."""
+    fixed, moving, push, pose = crossed_ridges(offset_mm * 1e-3)
+    touch = SweepPair(fixed, moving, push).touch(pose, 0.0, 1e-6)
+    assert abs(touch.travel - 1e-4) <= 1e-12
+    assert abs(fcl_travel(CollisionPair(fixed, moving), pose, push) - 1e-4) <= 2 * TOL_M
+    assert set(touch.kinds[touch.gaps <= touch.travel + 1e-12].tolist()) == {2}
+
+
+def test_which_faces_take_part() -> None:
+    """A closed surface's faces face out (+1), or in where it is wound inside out (-1); an
+    open surface's faces both ways (0), each surface of a combined mesh on its own."""
+    box = trimesh.creation.box()
+    inside_out = box.copy()
+    inside_out.invert()
+    sphere = trimesh.creation.icosphere()
+    sheet = trimesh.Trimesh(sphere.vertices, sphere.faces[:-3])
+    assert set(facing(box).tolist()) == {1}
+    assert set(facing(inside_out).tolist()) == {-1}
+    assert set(facing(sheet).tolist()) == {0}
+    both = facing(trimesh.util.concatenate([box, sheet]))
+    assert both[:len(box.faces)].tolist() == [1] * len(box.faces)
+    assert set(both[len(box.faces):].tolist()) == {0}
+
+
+def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np.ndarray,
+                seed: int) -> tuple[int, int]:
+    """Probes about a contact pose, as the climb makes them: every pair of triangles within
+    0.3 mm of touching there, and the vertices of its moving triangles, asked at each
+    probe. Where a gap is short of the probe's lift, python-fcl must find the probe lifted
+    by it in collision. Returns (refuted probes, probes)."""
+    pair = CollisionPair(fixed, moving)
+    free = backed(pair, start, push)
+    free[:3, 3] += (fcl_travel(pair, free, push) - 1e-7) * push
+    sweep = SweepPair(fixed, moving, push)
+    touch = sweep.touch(free, 0.0, 3e-4)
+    assert len(touch.gaps), 'no contact to probe from'
+    centre = free[:3, :3] @ moving.centroid + free[:3, 3]
+    probes = np.array(lateral_poses(free, push, centre, seed, 24, 3e-4, 0.5))
+    lifts = np.random.default_rng(seed).choice([2.5e-6, 2.5e-5, 1e-4], len(probes))
+    pairs = np.broadcast_to(touch.faces, (len(probes),) + touch.faces.shape)
+    gaps = sweep.witnesses(probes, pairs, 0.0).min(axis=1)
+    vertices = np.broadcast_to(np.unique(moving.faces[touch.faces[:, 0]]),
+                               (len(probes), len(np.unique(moving.faces[touch.faces[:, 0]]))))
+    reached = sweep.vertex_gaps(probes, vertices, 1e-3)
+    refuted = (gaps < lifts) | (reached < lifts)
+    for probe, lift, no in zip(probes, lifts, refuted):
+        if no:
+            lifted = probe.copy()
+            lifted[:3, 3] += lift * push
+            assert pair.collides(lifted), f'refuted a probe python-fcl finds free ({lift})'
+    return int(refuted.sum()), len(probes)
+
+
+@pytest.mark.parametrize('name', sc.SCENES)
+def test_a_refuted_probe_collides_for_python_fcl(name: str) -> None:
+    var = sc.variant(name, 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    refuted, probes = refutations(var.fixed, var.moving, push, var.start, seed=7)
+    assert 0 < refuted <= probes
+
+
+@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
+def test_a_refuted_probe_collides_for_python_fcl_on_the_total_knee() -> None:
+    fixed, moving, push, _ = total_knee(seed=1)
+    refuted, probes = refutations(fixed, moving, push, pose_from(np.eye(3),
+                                                                 np.array([0.0, -2e-3, 0.0])),
+                                  seed=13)
+    assert refuted >= probes // 2
+
+
+def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
+    """Wrong dtypes, shapes, indices or directions are a Python error, never a crash."""
+    box = trimesh.creation.box()
+    v = np.ascontiguousarray(box.vertices, dtype=np.float64)
+    f = np.ascontiguousarray(box.faces, dtype=np.int64)
+    s = np.ones(len(f), dtype=np.int8)
+    with pytest.raises(TypeError):
+        _sweep.Body(v.astype(np.float32), f, s)
+    with pytest.raises(ValueError):
+        _sweep.Body(v, f + 100, s)
+    with pytest.raises(ValueError):
+        _sweep.Body(v, f, s[:-1])
+    body = _sweep.Body(v, f, s)
+    with pytest.raises(ValueError):
+        _sweep.View(body, np.array([0.0, 0.0, 2.0]), -1)
+    fixed = _sweep.View(body, np.array([0.0, 0.0, 1.0]), -1)
+    moving = _sweep.View(body, np.array([0.0, 0.0, 1.0]), 1)
+    with pytest.raises(ValueError):
+        _sweep.travels(moving, fixed, np.eye(4)[None], 0.0, 0.0, 1.0)
+    with pytest.raises(ValueError):
+        _sweep.travels(fixed, moving, np.eye(3), 0.0, 0.0, 1.0)
+    with pytest.raises(ValueError):
+        _sweep.travels(fixed, moving, np.eye(4)[None], -1.0, 0.0, 1.0)
+    with pytest.raises(ValueError):
+        _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 99]]]), 0.0)
+    with pytest.raises(ValueError):
+        _sweep.vertex_gaps(fixed, moving, np.eye(4)[None], np.array([[99]]), 0.0)
