@@ -10,17 +10,21 @@ setup(
     version='0.1.0',
     packages=find_packages(include=['kneeseat_core', 'kneeseat_core.*',
                                     'kneeseat_ros', 'kneeseat_ros.*']),
-    package_data={'kneeseat_core': ['py.typed', 'data/*', 'meshes/_sweep.pyi']},
+    package_data={'kneeseat_core': ['py.typed', 'data/*', 'meshes/_sweep.pyi',
+                                    'settle/_simplex.pyi']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml')),
     ],
-    # compiled C++: the exact travel along the push (kneeseat_core/meshes/sweep.py)
+    # compiled C++: the exact travel along the push (kneeseat_core/meshes/sweep.py) and the
+    # climb's small linear program (kneeseat_core/settle/model.py)
     ext_modules=[Extension(name, [source], extra_compile_args=['-O3', '-std=c++17'],
                            language='c++')
                  for name, source in (('kneeseat_core.meshes._sweep',
-                                       'kneeseat_core/meshes/_sweep.cpp'),)],
+                                       'kneeseat_core/meshes/_sweep.cpp'),
+                                      ('kneeseat_core.settle._simplex',
+                                       'kneeseat_core/settle/_simplex.cpp'))],
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='kneeseat developers',

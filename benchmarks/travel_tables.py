@@ -1,11 +1,12 @@
-"""Two tables of one knee, built with the travel by python-fcl and by rays: where they differ.
+"""Two tables of one knee on one grid: where they differ, and whether the second is at rest there.
 
-Run: `python benchmarks/travel_tables.py FCL.npz RAYS.npz [--workers 2] [--limit N]`
-(each from `kneeseat build CONFIG --travel fcl|rays`). Prints, per body, how many cells
-differ by more than the resolution (the frame origin's displacement, or the turn times the
-body's reach), the largest difference, and then the referee's verdicts (`kneeseat verify`'s
-judge: python-fcl and Nelder-Mead, nothing of the settle) on those cells of the rays table:
-how many are at rest and the largest gain. Also the build figures both tables recorded.
+Run: `python benchmarks/travel_tables.py REFERENCE.npz JUDGED.npz [--workers 2] [--limit N]`
+(say the same config built by an earlier release and by this one). Prints, per body, how
+many cells differ by more than the resolution (the frame origin's displacement, or the turn
+times the body's reach), the largest difference, and then the referee's verdicts (`kneeseat
+verify`'s judge: python-fcl and Nelder-Mead, nothing of the settle) on those cells of the
+judged table: how many are at rest and the largest gain. Also the build figures both
+tables recorded.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from kneeseat_core.geometry import matrix_from_quat
 from kneeseat_core.knee import config_from_metadata
 from kneeseat_core.meshes import load_meshes
 from kneeseat_core.referee import verify_table
-from kneeseat_core.sweep import executor_for
+from kneeseat_core.sweep import executor_for, queries_per_cell
 from kneeseat_core.table import PoseTable, read_table
 from machine import describe_machine
 
@@ -56,24 +57,23 @@ def differing(a: PoseTable, b: PoseTable, body: int, resolution: float) -> \
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('fcl', type=Path, help='table built with --travel fcl')
-    parser.add_argument('rays', type=Path, help='table built with --travel rays')
+    parser.add_argument('reference', type=Path, help='the table compared against')
+    parser.add_argument('judged', type=Path, help='the table whose differing cells are judged')
     parser.add_argument('--workers', type=int, default=2)
     parser.add_argument('--limit', type=int, default=None,
                         help='judge at most this many differing cells, evenly spread over '
                         'them (all by default)')
     args = parser.parse_args(argv)
-    a, b = read_table(args.fcl), read_table(args.rays)
+    a, b = read_table(args.reference), read_table(args.judged)
     if a.position_m.shape != b.position_m.shape or a.bodies != b.bodies:
         print('travel_tables: the two tables have different grids or bodies', file=sys.stderr)
         return 2
     resolution = float(a.metadata['settle']['resolution_m'])
     print(describe_machine())
-    for name, t in (('fcl', a), ('rays', b)):
+    for name, t in (('reference', a), ('judged', b)):
         s = t.metadata['summary']
         print(f'{name}: {s["converged"]}/{s["cells"]} converged, {s["wall_s"]:.1f} s wall, '
-              f'{s["collision_checks"] / s["cells"]:.0f} python-fcl queries and '
-              f'{s.get("ray_casts", 0) / s["cells"]:.0f} ray casts per cell')
+              f'{queries_per_cell(s)}')
     judge: list[tuple[int, int, int]] = []
     for body, name in enumerate(a.bodies):
         cells, worst_d, worst_arc = differing(a, b, body, resolution)
@@ -88,12 +88,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     executor, close = executor_for(args.workers, None)
     try:
-        verdicts = list(verify_table(args.rays, judge, executor, extent=False))
+        verdicts = list(verify_table(args.judged, judge, executor, extent=False))
     finally:
         close()
     gains = [v.gain_m for v in verdicts if v.converged]
     not_at_rest = [v for v in verdicts if v.converged and v.gain_m > resolution]
-    print(f'referee on the {len(verdicts)} differing cells of the rays table: '
+    print(f'referee on the {len(verdicts)} differing cells of the judged table: '
           f'{len(gains) - len(not_at_rest)} at rest, {len(not_at_rest)} not; largest gain '
           f'{max(gains) * 1e3:.3f} mm')
     for v in not_at_rest:

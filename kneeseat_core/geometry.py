@@ -47,8 +47,6 @@ class Tolerances:
         degenerate: |Gram determinant| (m^4) below this: a triangle has no area.
         normal_length: a sum of unit vertex normals shorter than this cancels (a knife
             edge), and the face normal stands in for it.
-        hull_weight: Wolfe's minimum-norm point: weights and the optimality gap (relative
-            to the largest squared norm) below this count as zero.
         fraction: a body's attitude fraction within this of 0 ignores that angle.
     Inputs from outside:
         input_unit_norm: |1 - |q|| accepted (then normalised) from a tracker or a START.json:
@@ -70,7 +68,6 @@ class Tolerances:
     torque: float = 1e-12
     degenerate: float = 1e-30
     normal_length: float = 1e-9
-    hull_weight: float = 1e-12
     fraction: float = 1e-12
     input_unit_norm: float = 1e-3
     registration: float = 1e-6

@@ -15,10 +15,9 @@ import numpy as np
 from .errors import SettleError
 from .geometry import unit
 
-__all__ = ['Method', 'Travel', 'SettleParams']
+__all__ = ['Method', 'SettleParams']
 
 Method = Literal['default', 'patent']
-Travel = Literal['rays', 'fcl']
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,12 +50,6 @@ class SettleParams:
     # direction contact is sought along.
     load_n: float | None = None
     load_toward: tuple[float, float, float] | None = None
-    # How the default method measures the travel along the push: by dichotomy on
-    # python-fcl's boolean queries, or by rays from the vertices near contact (python-fcl
-    # judging a start in collision, a pose the rays see inside, and the final pose). Rays
-    # are not the default: on the knees' meshes they do not make a table faster
-    # (docs/design.md, "The travel by rays"). The patent's method always uses python-fcl.
-    travel: Travel = 'fcl'
 
     def check(self) -> None:
         """Raise SettleError naming the first invalid parameter."""
@@ -87,7 +80,5 @@ class SettleParams:
         if self.load_toward is not None and \
                 not np.all(np.isfinite(np.asarray(self.load_toward, dtype=float))):
             raise SettleError(f'load_toward={self.load_toward} must be three finite numbers')
-        if self.travel not in ('rays', 'fcl'):
-            raise SettleError(f"travel '{self.travel}' is unknown; use rays or fcl")
         if self.method not in ('default', 'patent'):
             raise SettleError(f"method '{self.method}' is unknown; use default or patent")

@@ -33,6 +33,7 @@ from kneeseat_core.knee import BodySpec, KneeConfig, load_config
 from kneeseat_core.settle import settle
 from kneeseat_core.sweep import warm_start
 from kneeseat_core.referee import Referee, verify_table
+from kneeseat_core.referee.judge import Load
 from kneeseat_core.table import PoseTable, read_table, write_table
 from kneeseat_core.typed import Floats
 
@@ -268,10 +269,29 @@ class MidCell:
     lookup_gain_mm: float    # what the referee still gains from the interpolated pose
 
 
+def mid_load(config: KneeConfig, spec: BodySpec, placed: dict[str, Floats]) -> Load | None:
+    """The referee's own view of the ligaments on `spec` (its energy, nothing of the
+    settle's), every point not on the body placed by `placed` (name -> pose)."""
+    assert config.ligaments is not None
+    fibres = config.ligaments.acting_on(spec.name, tuple(placed))
+    if not fibres or spec.load_n is None:
+        return None
+    paths = tuple((np.array([p if b == spec.name else placed[b][:3, :3] @ p + placed[b][:3, 3]
+                             for b, p in zip(f.bodies, f.points)]),
+                   np.array([b == spec.name for b in f.bodies])) for f in fibres)
+    toward = None if spec.load_toward is None else np.asarray(spec.load_toward, dtype=float)
+    return Load(float(spec.load_n), toward, paths, np.array([f.slack_m for f in fibres]),
+                np.array([f.stiffness_n for f in fibres]),
+                np.array([f.transition for f in fibres]))
+
+
 @pytest.fixture(scope='module')
 def midcells(full: Knee) -> list[MidCell]:
-    """N_MIDPOINTS seeded mid-cells, each settled directly (every body) and interpolated."""
+    """N_MIDPOINTS seeded mid-cells, each settled directly (every body, with the ligaments
+    the table was built with, each body's fibres placed by the bodies settled before it
+    there) and interpolated; the referee judges the same objective with its own energy."""
     config, table = full.config, full.table
+    assert config.ligaments is not None
     rng = np.random.default_rng(20260901)
     flexion, varus = table.flexion_rad, table.varus_rad
     fixed = RigidBody.from_mesh(load_mesh(config.reference.mesh))
@@ -281,6 +301,7 @@ def midcells(full: Knee) -> list[MidCell]:
         i, j = int(rng.integers(0, len(flexion) - 1)), int(rng.integers(0, len(varus) - 1))
         f, v = 0.5 * (flexion[i] + flexion[i + 1]), 0.5 * (varus[j] + varus[j + 1])
         lookup = table.interpolate(f, v)
+        placed = {config.reference.name: np.eye(4)}
         for b, spec in enumerate(config.bodies):
             # warm start from the nearest node (all four are equally near: take the
             # first corner), turned to the mid-cell attitude as the sweep does
@@ -290,10 +311,12 @@ def midcells(full: Knee) -> list[MidCell]:
             start = warm_start(node, config.attitude(spec, flexion[i], varus[j]),
                                config.attitude(spec, f, v), np.asarray(params.push),
                                params.step_m)
-            result = settle(fixed, bodies[b], start, params)
+            result = settle(fixed, bodies[b], start, params,
+                            tissue=config.ligaments.tissue(spec.name, placed))
             assert result.converged, result.reason
             referee = Referee([fixed.mesh], [bodies[b].mesh], np.asarray(params.push),
-                              params.resolution_m)
+                              params.resolution_m, load=mid_load(config, spec, placed))
+            placed[spec.name] = result.pose
             interpolated = pose_from(matrix_from_quat(lookup.orientation_xyzw[b]),
                                      lookup.position_m[b])
             interpolated[:3, 3] += referee.travel(interpolated) * np.asarray(params.push)

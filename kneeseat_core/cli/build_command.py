@@ -54,10 +54,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
         grid = {key: value for key, value in given if value is not None}
         if grid:
             overrides['grid'] = grid
-        settle = {key: value for key, value in (('method', args.method),
-                                                ('travel', args.travel)) if value is not None}
-        if settle:
-            overrides['settle'] = settle
+        if args.method is not None:
+            overrides['settle'] = {'method': args.method}
         loaded.append(load_config(cfg_path, mesh_dir, overrides or None))
     for out in outs:
         if not out.parent.is_dir():
@@ -124,9 +122,6 @@ def register_commands(sub: Subcommands) -> None:
     p.add_argument('--varus-grid', type=_grid_arg, metavar='START,STOP,STEP',
                    help='override the varus grid (degrees)')
     p.add_argument('--method', choices=('default', 'patent'), help='override the settle method')
-    p.add_argument('--travel', choices=('fcl', 'rays'),
-                   help="override how the default method measures the travel (the config's "
-                   'settle.travel; fcl unless it says rays)')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(command=_cmd_build)
 

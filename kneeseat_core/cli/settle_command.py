@@ -80,7 +80,7 @@ def _cmd_settle(args: argparse.Namespace) -> int:
         rotation_step_rad=None if args.rotation_step is None else math.radians(args.rotation_step),
         rotation_resolution_rad=(None if args.rotation_resolution is None
                                  else math.radians(args.rotation_resolution)),
-        max_iterations=args.max_iterations, method=args.method, travel=args.travel)
+        max_iterations=args.max_iterations, method=args.method)
     params.check()
     start = load_start_pose(args.start)
     fixed = RigidBody.from_mesh(load_mesh(args.fixed, args.units))
@@ -101,11 +101,11 @@ def _cmd_settle(args: argparse.Namespace) -> int:
         print(f'{state}: {result.reason}')
         print(f'position (m)      {np.array2string(result.pose[:3, 3], precision=6)}')
         print(f'orientation xyzw  {np.array2string(q, precision=6)}')
-        print(f'iterations {result.iterations}, collision checks {result.collision_checks}, '
-              f'{len(result.contacts.points)} contacts, {result.elapsed_s * 1e3:.1f} ms '
-              f'({result.fcl_s / max(result.elapsed_s, 1e-12):.0%} in python-fcl)'
-              + (f', {result.ray_casts} ray casts ({result.rays} rays)'
-                 if result.ray_casts else ''))
+        print(f'iterations {result.iterations}, collision checks {result.collision_checks}'
+              + (f' ({result.travels} exact travels, {result.fcl_checks} python-fcl)'
+                 if result.travels else '')
+              + f', {len(result.contacts.points)} contacts, {result.elapsed_s * 1e3:.1f} ms '
+              f'({result.fcl_s / max(result.elapsed_s, 1e-12):.0%} in python-fcl)')
     return EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
@@ -133,8 +133,5 @@ def register_command(sub: Subcommands) -> None:
     p.add_argument('--max-iterations', type=int, default=d.max_iterations)
     p.add_argument('--units', choices=('m', 'mm'), default='m', help='units of both meshes')
     p.add_argument('--method', choices=('default', 'patent'), default=d.method)
-    p.add_argument('--travel', choices=('fcl', 'rays'), default=d.travel,
-                   help='how the default method measures the travel along the push: '
-                   f'python-fcl dichotomy or rays from the vertices near contact ({d.travel})')
     p.add_argument('--json', action='store_true', help='print the result as JSON')
     p.set_defaults(command=_cmd_settle)

@@ -268,7 +268,7 @@ _ENVELOPE_KEYS = {'max_slide_m', 'max_spin_deg'}
 _REF_KEYS = {'name', 'frame', 'mesh', 'display_mesh'}
 _GRID_KEYS = {'flexion_deg', 'varus_deg'}
 _SETTLE_KEYS = {'step_m', 'resolution_m', 'rotation_step_deg', 'rotation_resolution_deg',
-                'max_iterations', 'max_slide_m', 'max_spin_deg', 'method', 'travel'}
+                'max_iterations', 'max_slide_m', 'max_spin_deg', 'method'}
 
 
 def _check_keys(data: Any, allowed: set[str], where: str, required: set[str]) -> None:
@@ -407,6 +407,9 @@ _DEFAULTS = SettleParams()
 
 
 def _settle_params(data: Any) -> SettleParams:
+    if isinstance(data, dict) and 'travel' in data:
+        raise ConfigError('settle: travel is no longer a setting (the default method measures '
+                          'the travel exactly); remove the key')
     _check_keys(data, _SETTLE_KEYS, 'settle', set())
     try:
         params = SettleParams(
@@ -420,8 +423,7 @@ def _settle_params(data: Any) -> SettleParams:
             max_slide_m=float(data.get('max_slide_m', _DEFAULTS.max_slide_m)),
             max_spin_rad=(_DEFAULTS.max_spin_rad if data.get('max_spin_deg') is None
                           else math.radians(float(data['max_spin_deg']))),
-            method=data.get('method', _DEFAULTS.method),
-            travel=data.get('travel', _DEFAULTS.travel))
+            method=data.get('method', _DEFAULTS.method))
     except (TypeError, ValueError) as err:
         raise ConfigError(f'settle: {err}') from None
     try:

@@ -1,11 +1,11 @@
 """Settle one moving rigid body against a fixed one along a push direction (US 6,708,142).
 
 The moving body may translate in any direction and rotate only about axes parallel to the
-push direction `Δ` (`push`). Two methods share the primitives of `kneeseat_core.settle.search`
-(exact contact by dichotomy, contacts on the reference with its outward normals):
+push direction `Δ` (`push`). Two methods:
 
-`patent` (`kneeseat_core.settle.patent`) - the letter of FIGS. 2-16: drop along Δ to exact
-contact; torque test (barycentre, each point, the candidates' barycentre); a rotation by
+`patent` (`kneeseat_core.settle.patent`) - the letter of FIGS. 2-16 on python-fcl's boolean
+and contact queries (`kneeseat_core.settle.search`): drop along Δ to exact contact by
+dichotomy; torque test (barycentre, each point, the candidates' barycentre); a rotation by
 one step's arc about the centre found, else a slide by the component-wise average of the
 unit projected normals; stop when that slide is shorter than T2. A zero torque is ignored
 (not a change of sign) and python-fcl contacts are mapped to the reference by object
@@ -15,38 +15,33 @@ converged".
 `default` (`kneeseat_core.settle.climb`) - the same loop carried to a true rest pose: a local
 maximum of the travel along Δ over slides and spins, proved by probes. Departures, each
 named where it is made:
-  D1 combined moves: the next motion is the steepest admissible one for the contact set as
-     a whole - slide and spin about Δ together - the minimum-norm point of the convex hull
-     of the contact patches' depth gradients (first-order quasi-static equilibrium).
-  D2 blocked moves teach: a move that loses depth adds the contacts that blocked it to the
-     set, so the next direction respects them (this frees a wedged body).
-  D3 slope, not gain: a move's length doubles while the slope ahead stays steep and is cut
-     to the crest's secant estimate when the slope turns, so a shallow slope is climbed
-     whatever each step gains; a move is kept when it delivers a quarter of the gain its
-     slope promised, measured to an eighth of the promise (one query: still free lifted by
-     that much), and a promise too small to measure is taken on trust only while the last
-     measured one was kept. Exact contact is found to a quarter of the resolution.
+  D1 exact travel: how far the body goes along Δ before it touches is measured exactly
+     from the swept triangles (`kneeseat_core.meshes.sweep`: a vertex on a face or an edge
+     across an edge, the least gap over every pair of triangles), not by dichotomy; a
+     pose at contact stands a standoff (res/1024) short of touching.
+  D2 combined moves on a pattern: the moves are slides, spins and their combinations (26
+     directions) at a scale that grows after a move that gained and shrinks after none,
+     so slide and spin move together, a shallow slope is climbed in long moves and a
+     crease in short ones; a move must gain the proof's lift.
+  D3 witnesses: the contact features at a pose (the travel to first order,
+     `kneeseat_core.settle.model`) order the moves and name the pairs of triangles likely
+     to stop each; a pair, or a vertex of its moving triangle, that meets the fixed body
+     short of the travel a move needs refutes it exactly, without a search.
   D4 rotation resolution is an arc at the farthest vertex (resolution / radius) unless
      given explicitly, so a rotation can always be refined below one step.
-  D5 rest is proved, not assumed: when the patches balance (a slope that could not gain
-     one resolution across the envelope is flat), probes - 26 directions of slides, spins
-     and their combinations at 1, 4 and 16 times the finest move (first a quarter of it
-     where ligaments press the body on 8 or more times its load), lifted by a quarter
-     resolution from a bracket narrowed to res/64 - must all collide; a probe that gains is
-     followed outward while it gains, and the climb resumes. The rays are asked first
-     (`RayPair.blocked`, one cast per probe scale from the vertices of the triangles in
-     contact): a probe they block is in collision, exactly; python-fcl decides the rest,
-     so every gain is python-fcl's. D1b: when the hull balances
-     only because one patch sits at its own crest, the body spins about that patch.
+  D5 rest is proved, not assumed: when no move of the finest scale gains, probes - the 26
+     directions at 1, 4 and 16 times the finest move (first a quarter of it where
+     ligaments press the body on 8 or more times its load), each needing the proof's lift
+     (a quarter resolution) - must all fail, refuted by witnesses or measured; a probe
+     that gains is taken and the climb resumes.
   D6 honest ends: "converged" only after D5. Not converged: the iteration cap; lost contact
      (the body slid off the fixed body); leaving the search envelope (`max_slide_m` across
      the push and `max_spin_rad` about it, from the anchor pose): no rest near the start.
      Where the envelope holds (`envelope_holds`, a knee config's soft-tissue stand-in) the
      climb stays inside it and a rest on its boundary is reported as constrained.
-  D7 contact patches: contacts are the points where the two surfaces cross (python-fcl),
-     with the reference's vertex normals interpolated there; contacts on connected
-     triangles form one patch (split at creases) and count once, by their mean point and
-     normal, so a conforming patch straddling the rest does not balance the hull by itself.
+  D7 python-fcl judges: a start in collision is backed out along -Δ by python-fcl's
+     booleans, and the end pose is asked of python-fcl (one query); one it finds in
+     collision is backed out too (`SettleResult.judged_back_m`).
 The independent check of "at rest" is `kneeseat_core.referee.judge` (`kneeseat verify`). Why
 each departure is made, and what the letter does on real meshes: docs/design.md, "The
 settle".
@@ -57,7 +52,7 @@ import numpy as np
 
 from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.ligaments import Tissue
-from kneeseat_core.meshes import CollisionPair, RayPair, RigidBody
+from kneeseat_core.meshes import CollisionPair, RigidBody, SweepPair
 from kneeseat_core.params import Method, SettleParams
 from kneeseat_core.typed import Pose
 from .climb import run_climb
@@ -96,16 +91,12 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
     start = np.asarray(start, dtype=np.float64)
     search = Search(CollisionPair(fixed, moving), start, params,
                     start if anchor is None else np.asarray(anchor, dtype=np.float64))
-    if params.method == 'default':
-        search.rays = RayPair(search.pair, search.push, TUNING.near_margin_steps * params.step_m,
-                              TUNING.ray_window_res * params.resolution_m)
     pose = search.back_out(start)
-    limit = search.travel_limit(pose)
-    tol = params.resolution_m if params.method == 'patent' \
-        else TUNING.contact_tol_res * params.resolution_m
-    bracket = search.drop(pose, tol, limit)
-    if bracket is None:
-        raise NoContactError(limit)
     if params.method == 'patent':
+        limit = search.travel_limit(pose)
+        bracket = search.drop(pose, params.resolution_m, limit)
+        if bracket is None:
+            raise NoContactError(limit)
         return run_patent(search, bracket)
-    return run_climb(search, bracket, tissue)
+    search.sweep = SweepPair(fixed, moving, search.push)
+    return run_climb(search, pose, tissue, TUNING)

@@ -1,43 +1,34 @@
 """`--method default`: the patent's loop carried to a true rest pose (see kneeseat_core.settle).
 
-Rest is a local maximum of the travel s: how far the body goes along the push Δ before it
-touches, as a function of the lateral state (slides across Δ and a spin about an axis
-parallel to Δ). The climb is a steepest ascent of s over that state, in five named steps
-over a small state object (`_Climb`):
+Rest is a local maximum of the objective over the lateral state (slides across the push Δ
+and a spin about an axis parallel to it): the travel s along Δ before the body touches, or,
+with ligaments, the load's work less their energy at the contact pose
+(`kneeseat_core.settle.objective`). The travel comes exactly from the swept triangles
+(`kneeseat_core.meshes.sweep`): one query from a pose gives how far the body goes along Δ
+and the contact features that close within a window beyond. The climb is a pattern search
+on the exact objective, over a small state object (`_Climb`):
 
-- `choose`: the contacts at the current pose are grouped into patches (one mean point
-  and normal each); each patch's depth gradient says how much depth a unit move gains
-  there, and the steepest move that gains at every patch is the minimum-norm point of
-  their convex hull (D1). A slope that could not gain one resolution across the whole
-  envelope counts as flat: the contacts balance.
-- `move`: a line search along that direction. The move is accepted while it does not
-  lose depth beyond the contact tolerance; its length grows (doubles) while the slope
-  measured at the new pose stays above half the slope at the old one and is cut to the
-  secant estimate of the crest when the slope changes sign (D3), so a shallow slope is
-  followed whatever the length of the climb and however little each step gains.
-  A move that loses depth teaches the contacts that blocked it (D2).
-- `leap`: where ligaments act and the patches' model has no move left, the gap field of one
-  cast of rays (every near ray's gap along Δ and the normal it meets) models the travel
-  over a small lateral move; the model's best move within a trust radius is measured like
-  any move, and repeated from there while the field promises a gain the
-  proof could see (D8).
-- `prove`: when the contacts balance (or no move of the finest size is left), probes in
-  26 directions (slides, spins and their combinations) at three scales, from the finest
-  move to 16 times it (and a quarter of it first where ligaments press the body on hard),
-  each lifted by a quarter resolution, must all collide; a probe that gains is followed
-  outward while it gains (a pattern move) and the climb resumes (D5).
-  A probe that the near-active patches prove hopeless by a wide margin is not queried;
-  the rest are asked of rays first (one cast per scale from the vertices of the triangles
-  in contact: a ray entering the other body short of a probe's lift blocks it exactly;
-  then one along the same triangles' edges: an edge crossing a face of the other body at
-  the lifted probe is a contact, exactly), and python-fcl decides every probe the rays
-  leave open.
-- the envelope: the climb may not leave it (D6); where the envelope holds (a config's
-  soft-tissue stand-in), the move is kept inside and a rest on its boundary is
+- `step`: the moves of the current scale (the 26 probe directions: slides, spins and their
+  combinations; at the finest scales also the move the near-active features say climbs
+  most with every contact kept) are tried, most promising first, until one gains: the
+  proof's lift for a long move, anything measurable for a short one (`move_gain_res`: a
+  spin the contacts determine weakly is followed to its top). The scale grows after a
+  gain and shrinks after none, so a shallow slope is climbed in long moves and a crease
+  in short ones.
+- `_try`: most moves run into a contact, and the features say which: the near-active ones
+  (the travel after a small move to first order, `kneeseat_core.settle.model`) order the
+  moves; the pairs of triangles the features say close first after a move, and the
+  vertices of their moving triangles, refute a move exactly where one meets the fixed body
+  short of the travel the move needs; only the rest are measured.
+- `prove` (D5): when no move of the finest scale gains, probes in the 26 directions at 1, 4
+  and 16 finest moves (and a quarter of one first where ligaments press the body on hard),
+  each needing the proof's lift, are tried the same way at every scale not yet tried at
+  the pose; one that gains is taken and the climb resumes. None gains: at rest.
+- the envelope: the climb may not leave a search envelope (D6); an envelope that holds (a
+  config's soft-tissue stand-in) bounds the moves instead, and a rest on its boundary is
   reported as constrained.
-Each step returns what happened (`_Outcome`: the next step's length, and the end when the
-climb must stop); `run_climb` is the only place that applies it. Every number that steers
-the climb is in `kneeseat_core.settle.tuning`.
+Every number that steers the climb is in `kneeseat_core.settle.tuning`; why each step is
+what it is: docs/design.md, "The default method".
 """
 from __future__ import annotations
 
@@ -48,12 +39,14 @@ import time
 
 import numpy as np
 
+from kneeseat_core.errors import NoContactError
 from kneeseat_core.ligaments import Tissue
+from kneeseat_core.meshes.sweep import SweepPair, Touch
 from kneeseat_core.status import Status
-from kneeseat_core.typed import Bools, Floats, Pose
-from .hull import min_norm_point
+from kneeseat_core.typed import Floats, Pose
+from .model import best_move, Model, STEEPEST
 from .objective import Objective, objective_for
-from .search import Bracket, Contacts, LOST_CONTACT, Search, SettleResult, translated
+from .search import Contacts, LOST_CONTACT, Search, SettleResult, translated
 from .tuning import SettleTuning, TUNING
 
 __all__ = ['run_climb']
@@ -65,552 +58,323 @@ _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
 End = tuple[int, str]    # (Status code, reason)
 
 
-@dataclass(frozen=True, slots=True)
-class _Outcome:
-    """What one step of the climb did: the length of the next move, and the end when the
-    climb must stop there (lost contact, left the search envelope)."""
+@dataclass(frozen=True, slots=True, eq=False)
+class _Place:
+    """A pose at contact (free, a standoff short of touching along Δ): what it is worth,
+    its lateral state (slide e1, slide e2, arc from the anchor) and the features closing
+    within the window beyond it (gaps from the pose itself)."""
 
-    step: float
-    end: End | None = None
+    pose: Pose
+    value: float
+    state: Floats
+    touch: Touch
+    # the models of the travel about it, by (within, room) (`_Climb.model`)
+    models: dict[tuple[float, float], Model] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class _FloorNear:
-    """What the proof's rays are cast from: the vertices (k, 3) and the edges (e, 2, 3) of
-    the triangles that cross at the floor's contact, each in its body's frame."""
+class _Witnesses:
+    """Every feature within a wide window of a place (the pool the witnesses of a move are
+    drawn from), one row each, and the lateral state it was taken at."""
 
-    moving: Floats
-    fixed: Floats
-    moving_edges: Floats
-    fixed_edges: Floats
+    model: Model
+    state: Floats
 
 
-@dataclass(slots=True, eq=False)
 class _Climb:
-    """The state of one climb and its five steps."""
+    """The state of one climb and its steps."""
 
-    search: Search
-    tuning: SettleTuning
-    objective: Objective       # what the climb maximises (the travel, or work less energy)
-    arm: float                 # m of arc per radian of spin (the farthest vertex)
-    tol: float                 # exact-contact tolerance along Δ (m)
-    flat: float                # slope at or below which the contacts count as balanced
-    finest: float              # the finest move (m of slide or arc)
-    pose: Pose                 # at contact: free, within `tol` of touching
-    touching: Pose             # `pose` moved along Δ until it touches
-    floor: Contacts            # contact patches at `touching`
-    step: float                # length of the next move (m)
-    learned: Contacts = field(default_factory=Contacts.empty)   # taught by a rejected move
-    proof_checks: int = 0
-    proof_s: float = 0.0
-    stalled_at: Pose | None = None   # where the climb last ran out of moves
-    trusted: bool = False      # the last measured move kept its promise (see `move`)
-
-    @classmethod
-    def start(cls, search: Search, bracket: Bracket, tuning: SettleTuning,
-              tissue: Tissue | None) -> _Climb:
-        """The climb from the first exact contact `bracket`, its scales derived from the
-        settle's parameters (D4: the rotation resolution is an arc at the farthest vertex
-        unless given), its objective from the tissue acting on the body."""
+    def __init__(self, search: Search, sweep: SweepPair, tuning: SettleTuning,
+                 tissue: Tissue | None) -> None:
         p = search.params
-        arm = max(search.pair.moving.reach, p.step_m)
+        self.search, self.sweep, self.tuning = search, sweep, tuning
+        self.arm = max(search.pair.moving.reach, p.step_m)
         rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
-            else p.resolution_m / arm
-        objective = objective_for(search, tissue, arm)
-        return cls(search=search, tuning=tuning, objective=objective, arm=arm,
-                   tol=tuning.contact_tol_res * p.resolution_m,
-                   # a slope that cannot gain one resolution across the whole envelope
-                   flat=objective.precision * p.resolution_m
-                   / max(p.max_slide_m, p.max_spin_rad * arm),
-                   finest=min(p.resolution_m, rot_res * arm),
-                   pose=bracket.free, touching=bracket.touching,
-                   floor=search.patches(bracket.touching), step=p.step_m)
+            else p.resolution_m / self.arm          # D4: an arc of one resolution
+        self.objective: Objective = objective_for(search, tissue, self.arm)
+        self.finest = min(p.resolution_m, rot_res * self.arm)
+        self.standoff = tuning.standoff_res * p.resolution_m
+        self.lift = self.objective.precision * tuning.probe_lift_res * p.resolution_m
+        self.gain = self.objective.precision * tuning.move_gain_res * p.resolution_m
+        self.scale = tuning.first_moves * self.finest
+        self.directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (search.free == 0), axis=1)]
+        self.here: _Place | None = None
+        self.pool: _Witnesses | None = None
+        self.failed: set[float] = set()     # scales that found nothing at the current pose
+        self.proof_checks = 0
+        self.proof_s = 0.0
 
-    @property
-    def proof_lift(self) -> float:
-        """The gain (m) a probe of the proof of rest must show."""
-        return self.objective.precision * self.tuning.probe_lift_res \
-            * self.search.params.resolution_m
-
-    @property
-    def has_step(self) -> bool:
-        """A move of at least the shortest length the climb makes is left."""
-        return self.step >= self.tuning.min_move * self.finest
-
-    def _moved_since_stall(self) -> bool:
-        """True unless the pose is within one finest move of where the climb last stalled."""
-        if self.stalled_at is None:
-            return True
-        s = self.search
-        d = s.centre(self.pose) - s.centre(self.stalled_at)
-        slide = float(np.linalg.norm(d - (d @ s.push) * s.push))
-        rel = self.pose[:3, :3] @ self.stalled_at[:3, :3].T
-        spin = math.acos(max(-1.0, min(1.0, 0.5 * (float(np.trace(rel)) - 1.0))))
-        return slide + spin * self.arm > self.finest
-
-    def resume(self) -> tuple[Floats, float] | None:
-        """When the contacts balance or the step ran out: narrow the contact set, or restart
-        a fresh slope with the finest step - at most once per place, so a kink (a wedge
-        whose walls take turns in a narrow contact set) ends in the proof instead of a cycle.
-        """
-        if not self._moved_since_stall():
-            return None
-        self.stalled_at = self.pose
-        if self.has_step and not self.sharpen():
-            return None
-        chosen = self.choose()
-        if chosen is not None:
-            self.step = max(self.step, self.finest)
-        return chosen
-
-    # ---- first-order model ---------------------------------------------------------
-    def gradients(self, contacts: Contacts, pose: Pose | None = None) -> Floats:
-        """The objective's gradient (k, 3) at each facing patch w.r.t. (slide e1, slide e2,
-        arc), for the body at `pose` (default: the current pose): from the patch's depth
-        gradient, the travel's."""
-        s = self.search
-        pose = self.pose if pose is None else pose
-        facing = s.facing(contacts, s.push)
-        if len(facing) == 0:
-            return np.zeros((0, 3))
-        n, pts = facing.normals, facing.points
-        lever = np.cross(s.push, pts - s.centre(pose)) / self.arm
-        down = -(n @ s.push)
-        depth = np.stack([n @ s.e1, n @ s.e2, np.einsum('ij,ij->i', n, lever)], 1) \
-            * s.free / down[:, None]
-        return self.objective.gradients(depth, pose)
-
-    def _mask(self, direction: Floats) -> Floats:
-        """Where the envelope holds: `direction` without the parts that leave it."""
-        return self.search.envelope_mask(self.pose, self.finest, self.arm, direction)
-
-    def _room(self, direction: Floats, length: float) -> float:
-        """The longest move along `direction` (up to `length`) that stays inside."""
-        return self.search.limit_to_envelope(self.pose, self.arm, direction, length)
-
-    # ---- the steps ---------------------------------------------------------------------
-    def choose(self) -> tuple[Floats, float] | None:
-        """The steepest admissible move (unit direction, slope), or None when balanced.
-
-        Contacts learned from a rejected move (D2) that balance the floor are dropped
-        again: they were the same slope seen past its crest, not a new wall, and the
-        shortened step along the floor's own direction finds the crest instead.
-        """
-        for contacts in ((self.floor + self.learned, self.floor) if len(self.learned)
-                         else (self.floor,)):
-            grads = self.gradients(contacts)
-            if len(grads) == 0:
+    # ---- measuring -------------------------------------------------------------------
+    def arrive(self, target: Pose, expected: float = 0.0, window_res: float | None = None
+               ) -> _Place | None:
+        """The lateral pose `target` moved along Δ to contact: the travel measured exactly
+        from it lowered by enough that the lowered pose is free (`expected`: the travel
+        expected there, negative where `target` may be in collision), with the features
+        within `window_res` resolutions (default: the tuning's window); None: no contact
+        along Δ (the body slid off the fixed body)."""
+        s, sweep = self.search, self.sweep
+        window = (self.tuning.window_res if window_res is None else window_res) \
+            * s.params.resolution_m
+        behind = max(0.0, -2.0 * expected) + self.standoff
+        limit = s.travel_limit(target)
+        while True:
+            touch = sweep.touch(target, behind, window, limit + behind)
+            if not touch.buried:
+                break
+            behind *= 4.0
+            if behind > 2.0 * limit:
                 return None
-            d = self._mask(min_norm_point(grads))
-            norm = float(np.linalg.norm(d))
-            if norm > self.flat:
-                direction = d / norm
-                slope = float(np.min(grads @ direction))
-                if slope > 0.0:
-                    return direction, slope
-        self.learned = Contacts.empty()
-        return self.pivot()
-
-    def pivot(self) -> tuple[Floats, float] | None:
-        """D1b: the hull balances only because one patch sits at its own crest (its normal
-        along Δ, so its gradient vanishes): a smooth crest does not hold the body there to
-        first order. Pin that patch's point and spin about it, the way that gains at every
-        other patch; None when that gains nowhere (or two crests pin the body)."""
-        s = self.search
-        facing = s.facing(self.floor, s.push)
-        grads = self.gradients(facing)
-        if len(grads) < 2 or not s.free[0]:
+        if not math.isfinite(touch.travel):
             return None
-        flat = np.linalg.norm(grads, axis=1) <= self.tuning.crest_flat * self.flat
-        if int(flat.sum()) != 1:
-            return None
-        lever = np.cross(s.push, facing.points[flat][0] - s.centre(self.pose))
-        spin = np.array([-(lever @ s.e1) / self.arm, -(lever @ s.e2) / self.arm, 1.0])
-        spin = self._mask(spin / np.linalg.norm(spin))
-        norm = float(np.linalg.norm(spin))
-        if norm == 0.0:
-            return None
-        spin /= norm
-        for direction in (spin, -spin):
-            slope = float(np.min(grads[~flat] @ direction))
-            if slope > self.flat:
-                return direction, slope
-        return None
+        rise = touch.travel - self.standoff
+        pose = translated(target, rise * s.push)
+        shifted = Touch(touch.travel, False, touch.gaps - rise, touch.normals,
+                        touch.points + rise * s.push, touch.rooms, touch.kinds, touch.faces)
+        return _Place(pose, self.objective.value(pose), self.state_of(pose), shifted)
 
-    def sharpen(self) -> bool:
-        """Narrow the contact bracket to `sharpen` of the tolerance and take the patches
-        there; True when the contact set changed (a patch that was only near contact drops
-        out and no longer balances)."""
-        fine = self.tol * self.tuning.sharpen
-        if self._gap() <= fine:
-            return False
-        self._narrow(fine, rebase=True)
-        before = len(self.floor)
-        self.floor = self.search.patches(self.touching)
-        return len(self.floor) != before
+    def state_of(self, pose: Pose) -> Floats:
+        """(3,) the lateral state of `pose`: slides along e1, e2 and the arc of its spin,
+        from the anchor."""
+        slide, spin = self.search.offset(pose)
+        return np.array([slide[0], slide[1], spin * self.arm])
 
-    def move(self, direction: Floats, slope: float) -> _Outcome:
-        """One line-search step along `direction`.
+    def model(self, place: _Place, within: float = math.inf, room: float = 0.0) -> Model:
+        """The model of the travel about `place` from its features closing within `within`
+        that hold for a slide of at least `room` (a feature that stops being one sooner - a
+        crossing of two edges nearly parallel seen along Δ runs off its edge within
+        micrometres - stands for a slope the surfaces have only that far)."""
+        found = place.models.get((within, room))
+        if found is not None:
+            return found
+        s, t = self.search, place.touch
+        near = t.gaps <= within
+        if (near & (t.rooms >= room)).any():
+            near &= t.rooms >= room
+        found = place.models[(within, room)] = Model.of(
+            t.gaps[near], t.normals[near], t.points[near], t.faces[near], s.push, s.e1, s.e2,
+            s.centre(place.pose), self.arm, s.free)
+        return found
 
-        A move is kept only if it delivers `promise` of the gain its slope promised,
-        measured: one query asks whether the moved body, lifted by that much (plus what
-        the current pose's own bracket leaves open), is still free (python-fcl's contact
-        set there, which costs what a boolean does on a free pose and is what a blocked
-        move learns from). The current bracket is
-        narrowed first to `measure` of the promise, so a promise of a few micrometres is
-        held to a fraction of one and a promise of a millimetre to the contact tolerance.
-        A promise too small to measure is taken on trust (it only has to not lose depth),
-        and only while the last measured promise was kept: normals that promised a slope
-        the surfaces do not have are not followed through the flats they stand on.
-        """
-        s, t = self.search, self.tuning
-        length = self._room(direction, self.step)
-        if length < t.min_move * self.finest:
-            return _Outcome(0.0)                       # the step has run out
-        promised = length * slope
-        if self.objective.smooth and promised < self.proof_lift:
-            return _Outcome(0.0)                       # the proof's to find (Objective.smooth)
-        floor_tol = t.finest_tol_res * s.params.resolution_m
-        tau = self._measuring(promised)
-        width = self._narrow(tau)
-        target = s.lateral(self.pose, length * direction, self.arm)
-        measured = promised >= t.measurable * floor_tol
-        if not (measured or self.trusted):
-            return _Outcome(t.untrusted_cut * length)
-        base_gap, gain = (width, t.promise * promised) if measured else (-width, 0.0)
-        kept = self.objective.lift_to(target, self.pose, base_gap, gain)
-        if abs(kept) <= self.objective.lift_limit:
-            lifted = translated(target, kept * s.push)
-            # the contact set there at once: empty where the lifted body is free (python-fcl
-            # walks the same pairs as for a boolean), what `_blocked` learns from otherwise
-            crossing = s.patches(lifted)
-            if len(crossing):
-                return self._blocked(direction, slope, length, measured, crossing, target)
-            bracket = s.touch(lifted, self.objective.travel_guess(promised, kept), tau,
-                              free_at_start=True)
-        else:
-            # the load barely presses along the push: a lift that deep proves nothing (an
-            # open sheet has no inside), so the contact itself is found and weighed
-            bracket = s.touch(target, self.objective.travel_guess(promised, 0.0), tau)
-            if bracket is not None and self.objective.value(bracket.free) < \
-                    self.objective.target(self.pose, base_gap, gain):
-                return self._blocked(direction, slope, length, measured,
-                                     s.patches(bracket.touching), target)
-        if bracket is None:
-            return _Outcome(self.step, (Status.LOST, LOST_CONTACT))
-        floor = self._floor_at(bracket.free)
-        grads = self.gradients(floor, bracket.free)
-        new_slope = float(np.min(grads @ direction)) if len(grads) else slope
-        if measured:
-            self.trusted = True           # the surfaces kept a measured promise
-        end = self._arrive(bracket, floor)
-        if new_slope >= t.steep * slope:
-            return _Outcome(min(t.grow * length, t.max_move_steps * s.params.step_m), end)
-        return _Outcome(length * self._crest(slope, new_slope), end)
+    def settle_in(self, place: _Place) -> None:
+        """Start at `place` (the first contact): its features within the wide window are
+        the witnesses' pool."""
+        self.here = place
+        self._pool(place)
 
-    def _blocked(self, direction: Floats, slope: float, length: float, measured: bool,
-                 floor: Contacts, target: Pose) -> _Outcome:
-        """The move kept less than its promise: past the crest, a contact the patches did
-        not know (D2: learn it from the contact patches `floor` of the body held back
-        there, so that the next direction respects it), or a slope the normals promise but
-        the surfaces do not have; the next step is shorter."""
-        s, t = self.search, self.tuning
-        grads = self.gradients(floor, target)
-        new_slope = float(np.min(grads @ direction)) if len(grads) else 0.0
-        blocking = grads @ direction < 0.0 if len(grads) else np.zeros(0, dtype=bool)
-        facing = s.facing(floor, s.push)
-        self.learned = self.learned + Contacts(facing.points[blocking],
-                                               facing.normals[blocking])
-        if measured and new_slope >= t.steep * slope:
-            # nothing blocks and the normals there still promise the slope (this is
-            # no overshoot of a crest): the surfaces do not have that slope
-            self.trusted = False
-        return _Outcome(length * min(self._crest(slope, new_slope), t.blocked_cap))
+    def _pool(self, place: _Place) -> None:
+        self.pool = _Witnesses(self.model(place), place.state)
 
-    def _floor_at(self, free: Pose) -> Contacts:
-        """The contact patches within the contact tolerance of the free pose `free` (the
-        near-active set, whatever precision the pose itself was measured to)."""
-        s = self.search
-        return s.patches(translated(free, self.tol * s.push))
-
-    def _pressed(self) -> float:
-        """How much objective one unit of travel along Δ is worth at the current pose (at
-        least 1): the pose's contact bracket, a length along Δ, is narrowed by this much
-        more than a tolerance on the objective, so that where stretched ligaments press the
-        body on with many times its load, the bracket's uncertainty does not swamp the
-        gain a move must show (1 for the travel: its bits unchanged)."""
-        return max(1.0, self.objective.pressing(self.pose))
-
-    def _measuring(self, promised: float) -> float:
-        """The contact tolerance (m) that measures a move promising `promised`: `measure` of
-        it in travel along Δ, between the finest tolerance and the contact tolerance."""
+    # ---- the steps -------------------------------------------------------------------
+    def step(self) -> End | None | bool:
+        """One pattern move at the current scale: True when one was made (the scale then
+        grows) or the scale shrank, False when it has shrunk below the finest move (the
+        proof's turn), an end when the climb must stop."""
+        assert self.here is not None
         t = self.tuning
-        return min(self.tol, max(t.measure * promised / self._pressed(),
-                                 t.finest_tol_res * self.search.params.resolution_m))
+        if len(self.here.touch.gaps) == 0:
+            return (Status.LOST, LOST_CONTACT)
+        scale = self.scale
+        # a long move must gain what the proof could see; a short one anything (so that a
+        # spin the contacts determine weakly is followed to its top), and the near-active
+        # features' own way up joins the directions there (slide and spin combined as no
+        # fixed direction combines them)
+        fine = scale <= t.fine_moves * self.finest
+        moves = np.concatenate([scale * self.directions, self._uphill(scale)]) if fine \
+            else scale * self.directions
+        found = self._try(self._inside(moves, scale), self.gain if fine else self.lift,
+                          None if scale <= t.every_direction_moves * self.finest
+                          else t.far_tries)
+        if isinstance(found, _Place):
+            self.scale = min(t.grow * scale, t.far_moves * self.finest)
+            return self.take(found)
+        if found is not None:
+            return found
+        self.failed.add(scale)
+        self.scale = scale * t.shrink
+        if self.scale < t.least_moves * self.finest:
+            self.scale = self.finest
+            return False
+        return True
 
-    def _gap(self) -> float:
-        """How far the current pose is from touching along Δ (m): its bracket's width."""
-        return self.search.depth(self.touching) - self.search.depth(self.pose)
-
-    def _narrow(self, tau: float, rebase: bool = False) -> float:
-        """Narrow the current pose's contact bracket to at most `tau` (the patches stay);
-        return its width (m). With `rebase` the touching pose is placed from the narrowed
-        pose rather than from the old one: another rounding, which `sharpen` keeps because
-        the tables' bits depend on it (measured: the total knee's table differs in 1,074
-        cells, 12 of them by more than the resolution, when both use one rounding)."""
+    def _uphill(self, scale: float) -> Floats:
+        """(0 or 1, 3) the move of `scale` the near-active features say climbs most (every
+        contact kept: slide and spin combined as no fixed direction combines them)."""
+        assert self.here is not None
         s = self.search
-        gap = self._gap()
-        if gap <= tau:
-            return gap
-        lo, hi = s.bisect_along(self.pose, 0.0, gap, tau)
-        if rebase:
-            self.pose = translated(self.pose, lo * s.push)
-            self.touching = translated(self.pose, (hi - lo) * s.push)
-        else:
-            self.touching = translated(self.pose, hi * s.push)
-            self.pose = translated(self.pose, lo * s.push)
-        return hi - lo
+        near = self.model(self.here, self.tuning.contact_tol_res * s.params.resolution_m)
+        if len(near.gaps) == 0:
+            return np.zeros((0, 3))
+        press, drive = self.objective.first_order(self.here.pose)
+        x, promised = best_move(near, press, drive, scale * s.free)
+        return x[None] if promised > 0.0 and np.any(x != 0.0) else np.zeros((0, 3))
 
-    def _arrive(self, bracket: Bracket, floor: Contacts) -> End | None:
-        """Take the pose of `bracket`; outside the search envelope, or pulled off the fixed
-        body by its ligaments, the climb ends."""
+    def _inside(self, moves: Floats, length: float) -> Floats:
+        """The moves of `moves` (m, 3), each of max-norm `length`, shortened to stay inside
+        an envelope that holds (a move with no room left is dropped)."""
+        assert self.here is not None
+        if not self.search.params.envelope_holds:
+            return moves
+        rooms = np.asarray(self.search.limits_to_envelope(self.here.pose, self.arm,
+                                                          moves / length, length))
+        keep = rooms > self.tuning.room_share * self.finest
+        out: Floats = moves[keep] * (rooms[keep] / length)[:, None]
+        return out
+
+    def take(self, place: _Place) -> End | None | bool:
+        """Move to `place`; outside the search envelope, or pulled off the fixed body by its
+        ligaments, the climb ends."""
         s = self.search
-        self.pose, self.touching, self.floor = bracket.free, bracket.touching, floor
-        self.learned = Contacts.empty()
-        outside = None if s.params.envelope_holds else s.beyond_envelope(self.pose)
-        return (Status.ENVELOPE, outside) if outside else self.pulled()
+        self.here = place
+        self.failed = set()
+        assert self.pool is not None
+        if np.max(np.abs(place.state - self.pool.state)) > \
+                self.tuning.pool_reach_moves * self.finest:
+            self._pool(self.arrive(place.pose, 0.0, self.tuning.pool_window_res) or place)
+        outside = None if s.params.envelope_holds else s.beyond_envelope(place.pose)
+        if outside:
+            return (Status.ENVELOPE, outside)
+        return self.pulled() or True
 
     def pulled(self) -> End | None:
         """The end when the body's ligaments pull it off the fixed body against its load."""
-        if self.objective.pressing(self.pose) > 0.0:
+        assert self.here is not None
+        if self.objective.pressing(self.here.pose) > 0.0:
             return None
-        return (Status.PULLED, self.objective.pulled_off(self.pose))
+        return (Status.PULLED, self.objective.pulled_off(self.here.pose))
 
-    def _crest(self, slope: float, new_slope: float) -> float:
-        """Share of the last move at which the slope would reach zero (secant), at least
-        `crest_floor`."""
-        if new_slope >= slope:
-            return 1.0
-        return min(max(slope / (slope - new_slope), self.tuning.crest_floor), 1.0)
-
-    def leap(self) -> End | None:
-        """D8: where the patches' model has no move left, climb on the gap field before the
-        proof. One cast (`RayPair.gaps`) gives every near ray's gap g_k and the normal of
-        the face it enters, so the travel after a lateral move x is min_k (g_k + a_k . x)
-        to first order, and the objective's change press dt + drive . x
-        (`Objective.first_order`): the best move within a trust radius is searched on that
-        model (`_best_move`). python-fcl measures each move as `move` does (contact from the
-        model's travel, to `measure` of its promise); a move that keeps `promise` of it is
-        taken and the field cast again there, the radius growing or shrinking with how well
-        the promise was kept. The leap ends when the field promises less than the proof's
-        lift, at the first move that keeps less than `promise`, or after `leap_casts`
-        casts. Only smooth objectives leap: their rests lie in creases narrower than the
-        finest move, where the patches' mean normals promise slopes the surfaces do not
-        have and the climb would creep by one proof's lift at a time (docs/design.md).
-        The end when the climb must stop there, else None: the proof follows."""
-        s, t, objective = self.search, self.tuning, self.objective
-        if s.rays is None or not objective.smooth:      # never the travel
-            return None
-        lift, res = self.proof_lift, s.params.resolution_m
-        radius, longest = t.leap_moves * self.finest, t.max_move_steps * s.params.step_m
-        moved = False
-        for _ in range(t.leap_casts):
-            gaps, slopes = self._gap_field(t.leap_window_res * res)
-            if len(gaps) == 0:
-                break
-            press, drive = objective.first_order(self.pose)
-            x, travel, promised = _best_move(gaps, slopes, press, drive, radius, s.free)
-            if promised < lift:
-                break                                  # nothing the proof could see
-            length = float(np.linalg.norm(x))
-            x = x * (self._room(x / length, length) / length)
-            bracket = s.touch(s.lateral(self.pose, x, self.arm), travel,
-                              self._measuring(promised))
-            if bracket is None:
-                break
-            kept = objective.value(bracket.free) - objective.value(self.pose)
-            if kept < t.promise * promised:
-                break                                  # the field misled: the proof decides
-            self.pose, self.touching, moved = bracket.free, bracket.touching, True
-            radius = min(2.0 * radius, longest) if kept >= t.leap_grow_share * promised \
-                else max(0.5 * radius, t.leap_min_moves * self.finest)
-        if not moved:
-            return None
-        return self._arrive(Bracket(self.pose, self.touching), self._floor_at(self.pose))
-
-    def _gap_field(self, within: float) -> tuple[Floats, Floats]:
-        """The gaps (k,) of the rays entering the other body within `within` at the current
-        pose, and each gap's gradient (k, 3) over (slide e1, slide e2, arc): a point of the
-        moving body moved by dp changes a gap to the face of normal n by -n . dp / n . Δ."""
-        s = self.search
-        assert s.rays is not None
-        gaps, normals, points = s.rays.gaps(self.pose, within)
-        lever = np.cross(s.push, points - s.centre(self.pose)) / self.arm
-        slopes = -np.stack([normals @ s.e1, normals @ s.e2,
-                            np.einsum('ij,ij->i', normals, lever)], 1) \
-            / (normals @ s.push)[:, None]
-        return gaps, slopes * s.free
-
-    def prove(self) -> _Outcome | None:
-        """D5: probe around the pose; the outcome when a probe gained (it was followed, or
-        the climb ended), None at rest."""
+    def prove(self) -> End | None | bool:
+        """D5: probe about the pose at every scale not yet tried there; True when a probe
+        gained (the climb resumes there), an end when the climb must stop, None at rest."""
+        assert self.here is not None
         s, t = self.search, self.tuning
-        lift = self.proof_lift
-        checks_before, started = s.queries(), time.perf_counter()
-        # the pose's own bracket is narrowed first, so a probe free at the lift has gained
-        # at least the lift less a sliver: every probe that succeeds is real progress
-        pressed = self._pressed()
-        self._narrow(t.probe_bracket_res * s.params.resolution_m / pressed)
-        grads = self.gradients(self.floor)
-        directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (s.free == 0), axis=1)]
-        model = np.min(grads @ directions.T, axis=0) if len(grads) \
-            else np.zeros(len(directions))
-        order = np.argsort(-model)                       # most promising first
-        near = self._floor_near()
+        started = time.perf_counter()
         try:
+            press, drive = self.objective.first_order(self.here.pose)
+            pressed = max(1.0, press)
             scales = list(zip(t.probe_scales_moves, t.hopeless_res))
-            if pressed >= t.pressed_from:      # never the travel (pressed 1)
+            if pressed >= t.pressed_from:
                 scales.insert(0, (t.pressed_probe_moves, t.hopeless_res[0]))
+            near = self.model(self.here, t.contact_tol_res * s.params.resolution_m,
+                              t.room_share * self.finest)
+            floor = float(np.min(near.gaps)) if len(near.gaps) else 0.0
             for scale, hopeless_res in scales:
                 length = scale * self.finest
-                # the near-active patches bound the travel after the probe by
-                # tol + length * model (plus curvature); where that is short of the lift by
-                # a wide margin, the probe cannot gain: no query needed. The curvature the
-                # model leaves out is a length along Δ, worth `pressed` times as much
-                # objective where ligaments press the body on
-                margin = hopeless_res * s.params.resolution_m * pressed
-                hopeless = length * model < lift - self.tol - margin
-                asked = directions[order[~hopeless[order]]]
-                moves = [d for d, room in zip(asked, s.limits_to_envelope(
-                    self.pose, self.arm, asked, length)) if room >= length]
-                if not moves:
+                moves = self._inside(length * self.directions, length)
+                self.proof_checks += len(moves)
+                if length in self.failed:      # tried there already, needing less
                     continue
-                cands = s.laterals(self.pose, length * np.array(moves), self.arm)
-                firsts = self.objective.first_lifts(cands, self.pose, 0.0, lift)
-                refuted = self._refuted(cands, firsts, near)
-                for d, cand, first, no in zip(moves, cands, firsts, refuted):
-                    if no or not self._gains(cand, lift, float(first)):
-                        continue
-                    return self._follow(d, length, lift)
+                # what the near-active features say each probe gains (to first order, at
+                # most what it can: the others can only close sooner); short of the lift
+                # by more than their curvature can hide (a length along Δ, worth `pressed`
+                # times as much objective where ligaments press), a probe cannot gain
+                if len(near.gaps) and len(moves):
+                    modelled = press * (near.travel(moves) - floor) + moves @ drive
+                    margin = hopeless_res * s.params.resolution_m * pressed
+                    moves = moves[modelled >= self.lift - margin]
+                found = self._try(moves, self.lift)
+                if isinstance(found, _Place):
+                    self.scale = length
+                    return self.take(found)
+                if found is not None:
+                    return found
         finally:
-            self.proof_checks += s.queries() - checks_before
             self.proof_s += time.perf_counter() - started
         return None
 
-    def _floor_near(self) -> _FloorNear:
-        """The vertices and the edges (body frames) of the triangles that cross at the
-        floor's contact, each body's."""
-        pair = self.search.pair
-        moving_tris, fixed_tris = self.floor.triangles
-        return _FloorNear(pair.moving.vertices[np.unique(pair.moving.faces[moving_tris])],
-                          pair.fixed.vertices[np.unique(pair.fixed.faces[fixed_tris])],
-                          pair.moving.edge_ends(moving_tris),
-                          pair.fixed.edge_ends(fixed_tris))
+    def _try(self, moves: Floats, gain: float, tries: int | None = None
+             ) -> _Place | End | None:
+        """The first of the moves `moves` (m, 3), most promising first, that gains `gain`,
+        or None; only the `tries` most promising when given. A move after which the body
+        no longer meets the fixed body along Δ ends the climb (lost contact).
 
-    def _refuted(self, cands: Floats, firsts: Floats, near: _FloorNear) -> Bools:
-        """(m,) True for each probe of `cands` (m, 4, 4) that the rays find in collision
-        lifted by its `firsts` (the Newton step `_gains` asks python-fcl about first), from
-        the floor's triangles (`_floor_near`): one cast of vertex rays at every probe (a
-        ray that enters the other body short of the lift: the travel there is shorter than
-        the lift), then one of the edges at the lifted probes the vertices left open (an
-        edge that crosses a face of the other body there: the edge-by-edge contacts vertex
-        rays miss). Either refutes the probe exactly; False leaves it to `_gains`."""
-        s = self.search
-        asked = np.isfinite(firsts) & (np.abs(firsts) <= self.objective.lift_limit)
-        if s.rays is None or not asked.any() or not (len(near.moving) or len(near.fixed)):
-            return np.zeros(len(cands), dtype=bool)
-        lifts = np.where(asked, firsts, 0.0)
-        bases = cands.copy()              # lifted back first where the lift is negative
-        bases[:, :3, 3] += np.minimum(lifts, 0.0)[:, None] * s.push
-        refuted = s.rays.blocked(near.moving, near.fixed, bases, np.maximum(lifts, 0.0)) \
-            & asked
-        open_ = np.flatnonzero(asked & ~refuted)
-        if len(open_):
-            lifted = cands[open_]
-            lifted[:, :3, 3] += lifts[open_, None] * s.push
-            refuted[open_] = s.rays.crossed(near.moving_edges, near.fixed_edges, lifted)
-        return refuted
-
-    def _gains(self, cand: Pose, lift: float, first: float) -> bool:
-        """Whether the lateral pose `cand` is at least `lift` above the current pose in the
-        objective: one query at the lift that proves it, or, where that lift is too deep
-        to prove anything, the contact itself found and weighed (`first`: the Newton
-        step of the lift from `cand`, `Objective.first_lifts`)."""
-        s, objective = self.search, self.objective
-        # the objective is concave along Δ (the load's work is, the energy convex), so one
-        # Newton step from the lateral pose lifts no higher than needed: touching there, the
-        # probe cannot gain; free, the lift is found exactly and asked again
-        if abs(first) <= objective.lift_limit and s.collides(translated(cand, first * s.push)):
-            return False
-        h = objective.lift_to(cand, self.pose, 0.0, lift)
-        if abs(h) <= objective.lift_limit:
-            return h == first or not s.collides(translated(cand, h * s.push))
-        bracket = s.touch(cand, 0.0, self.tol)
-        return bracket is not None and \
-            objective.value(bracket.free) >= objective.target(self.pose, 0.0, lift)
-
-    def _follow(self, direction: Floats, length: float, lift: float) -> _Outcome:
-        """A probe gained: follow its direction outward while it keeps gaining (a pattern
-        move), and continue from the best pose found."""
-        s, t, objective = self.search, self.tuning, self.objective
-        best: Bracket | None = None
-        while True:
-            target = s.lateral(self.pose, length * direction, self.arm)
-            h = objective.lift_to(target, self.pose, 0.0, lift)
-            bracket = s.touch(translated(target, h * s.push) if abs(h) <= objective.lift_limit
-                              else target, 0.0, self.tol)
-            if bracket is None:
-                if best is None:
-                    return _Outcome(self.step, (Status.LOST, LOST_CONTACT))
-                break
-            if best is not None and \
-                    objective.value(bracket.free) <= objective.value(best.free) + self.tol:
-                break
-            best = bracket
-            grown = self._room(direction, t.follow_grow * length)
-            if grown <= length or grown > t.max_move_steps * s.params.step_m:
-                break
-            length = grown
-        end = self._arrive(best, self._floor_at(best.free))
-        return _Outcome(max(self.step, t.resume_moves * self.finest), end)
+        The near-active features order them (to first order they bound the travel after a
+        move from above). A move is refuted without a search where a contact closes short
+        of the travel it needs: a pair of triangles from the witnesses' pool that the pool
+        says close first after it (`SweepPair.witnesses`), or a vertex of their moving
+        triangles onto whatever face of the fixed body it meets there
+        (`SweepPair.vertex_gaps`). The rest are measured in turn."""
+        assert self.here is not None and self.pool is not None
+        s, t, sweep = self.search, self.tuning, self.sweep
+        if len(moves) == 0:
+            return None
+        here = self.here
+        near = self.model(here, t.contact_tol_res * s.params.resolution_m,
+                          t.room_share * float(np.max(np.abs(moves))))
+        press, drive = self.objective.first_order(here.pose)
+        promise = moves @ drive
+        if len(near.gaps):
+            promise = promise + press * (near.travel(moves) - float(np.min(near.gaps)))
+        order = np.argsort(-promise, kind='stable')[:tries]
+        moves = moves[order]
+        targets = s.laterals(here.pose, moves, self.arm)
+        # one Newton step of the lift that gains: no more than the travel needed (the
+        # objective is concave along Δ), so a contact short of it refutes the move
+        needed = self.objective.first_lifts(targets, here.pose, gain)
+        open_ = np.isfinite(needed)
+        pool = self.pool.model
+        if len(pool.gaps) and open_.any():
+            shifted = moves[open_] + (here.state - self.pool.state)
+            pairs = pool.witnesses(shifted, t.witnesses)
+            refuted = np.min(sweep.witnesses(targets[open_], pairs, self.standoff), axis=1) \
+                < needed[open_]
+            left = ~refuted
+            if left.any():
+                # penetration from a lateral move of length l is at most its steepest slope
+                # times l: a vertex that far above a face is through it
+                vertices = s.pair.moving.faces[pairs[left, :, 0]].reshape(int(left.sum()), -1)
+                deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
+                reached = sweep.vertex_gaps(targets[open_][left], vertices, deepest)
+                refuted[left] = reached < needed[open_][left]
+            open_[open_] = ~refuted
+        for i in np.flatnonzero(open_):
+            place = self.arrive(targets[i], float(needed[i]))
+            if place is None:
+                return (Status.LOST, LOST_CONTACT)
+            if place.value - here.value >= gain:
+                return place
+        return None
 
 
-def run_climb(search: Search, bracket: Bracket, tissue: Tissue | None = None,
+def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
               tuning: SettleTuning = TUNING) -> SettleResult:
-    """Climb from the first exact contact `bracket` to a rest pose (module docstring), of
-    the travel, or of the load's work less the energy of the `tissue` acting on the body
-    (`kneeseat_core.settle.objective`)."""
+    """Climb from the free pose `start` (its contact along Δ found first) to a rest pose
+    (module docstring), of the travel, or of the load's work less the energy of the
+    `tissue` acting on the body (`kneeseat_core.settle.objective`)."""
     p = search.params
-    climb = _Climb.start(search, bracket, tuning, tissue)
+    assert search.sweep is not None
+    climb = _Climb(search, search.sweep, tuning, tissue)
+    first = climb.arrive(start, 0.0, tuning.pool_window_res)
+    if first is None:
+        raise NoContactError(search.travel_limit(start))
+    climb.settle_in(first)
     end: End | None = climb.pulled()
     while end is None and search.iterations < p.max_iterations:
         search.iterations += 1
-        chosen = climb.choose() if climb.has_step else None
-        if chosen is None:
-            chosen = climb.resume()
-        outcome: _Outcome | None
-        if chosen is not None:
-            outcome = climb.move(*chosen)
-        else:
-            end = climb.leap()
-            if end is not None:
-                break
+        outcome = climb.step()
+        if outcome is False:
             outcome = climb.prove()
-        if outcome is None:
-            end = _at_rest(search, climb)
-        else:
-            climb.step, end = outcome.step, outcome.end
+            if outcome is None:
+                end = _at_rest(search, climb)
+                break
+        if outcome is not True:
+            end = outcome      # type: ignore[assignment]
     status, reason = end or (
         Status.CAP, f'iteration cap ({p.max_iterations}) reached before rest was verified')
-    pose, back = search.judge(climb.pose, climb.tuning.finest_tol_res * p.resolution_m)
-    return search.result(pose, status, reason, climb.floor, proof_checks=climb.proof_checks,
+    assert climb.here is not None
+    pose, back = search.judge(climb.here.pose, tuning.finest_tol_res * p.resolution_m)
+    touch = climb.here.touch
+    near = touch.gaps <= climb.standoff + tuning.contact_tol_res * p.resolution_m
+    contacts = Contacts(touch.points[near] + (touch.gaps[near] - back)[:, None] * search.push,
+                        -touch.normals[near])
+    return search.result(pose, status, reason, contacts, proof_checks=climb.proof_checks,
                          proof_s=climb.proof_s, judged_back_m=back)
 
 
 def _at_rest(search: Search, climb: _Climb) -> End:
     """The end of a climb whose proof found nothing that gains: a plain rest, or a rest on
     the boundary of an envelope that holds."""
-    bound = (search.on_boundary(climb.pose, climb.finest, climb.arm)
+    assert climb.here is not None
+    bound = (search.on_boundary(climb.here.pose, climb.finest, climb.arm)
              if search.params.envelope_holds else None)
     gain = climb.objective.gain
     if bound:
@@ -618,38 +382,3 @@ def _at_rest(search: Search, climb: _Climb) -> End:
                 f'the envelope gains more than the resolution {gain}')
     return (Status.REST, 'rest: no slide, spin about the push or combination, short or '
             f'long, gains more than the resolution {gain}')
-
-
-# The leap's search of the gap field's model: a grid of 5 moves a coordinate across the
-# trust box, then a pattern search about the best (26 neighbours, the step halved each time).
-_GRID = np.array(list(itertools.product(np.linspace(-1.0, 1.0, 5), repeat=3)))
-_NEIGHBOURS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)])
-_REFINE = 6
-
-
-def _best_move(gaps: Floats, slopes: Floats, press: float, drive: Floats, radius: float,
-               free: Floats) -> tuple[Floats, float, float]:
-    """The move x (3,) within `radius` of no move in every free coordinate that the gap
-    field says gains most, press min_k (g_k + a_k . x) + drive . x less its value at no
-    move: searched on the model (`_GRID`, then `_REFINE` halvings of a pattern search), so
-    the move is the model's best to a 64th of the radius; with the travel min_k there and
-    the gain it promises."""
-    low = float(np.min(gaps))
-
-    def model(moves: Floats) -> tuple[Floats, Floats]:
-        travel = np.min(gaps[None, :] + moves @ slopes.T, axis=1)
-        return press * (travel - low) + moves @ drive, travel
-
-    moves = _GRID * (radius * free)
-    gains, travels = model(moves)
-    k = int(np.argmax(gains))
-    x, gain, travel = moves[k], float(gains[k]), float(travels[k])
-    step = 0.25 * radius
-    for _ in range(_REFINE):
-        near = np.clip(x + _NEIGHBOURS * (step * free), -radius, radius)
-        gains, travels = model(near)
-        k = int(np.argmax(gains))
-        if gains[k] > gain:
-            x, gain, travel = near[k], float(gains[k]), float(travels[k])
-        step *= 0.5
-    return x, travel, gain

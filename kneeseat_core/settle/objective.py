@@ -11,16 +11,15 @@ the contact pose, per unit load:
 for a load along a fixed line l, with the body in contact along Δ as before; for a load
 along the push (l = Δ, a tibia) that is the travel less E / F. A load that pulls toward a
 point o (a patella's quadriceps toward the femur, its tendon in E holding it against the
-pull) does the work -|o - c|, and l is the unit vector from c to o. Each contact patch's
-gradient of the travel, g, becomes the objective's gradient
+pull) does the work -|o - c|, and l is the unit vector from c to o. A lateral move x over
+(slide e1, slide e2, arc about the centroid) that changes the travel by dt changes it by
 
-    G = (l . Δ - dE/ds / F) g + l_lateral - dE/dx / F
+    (l . Δ - dE/ds / F) dt + (l_lateral - dE/dx / F) . x
 
-over (slide e1, slide e2, arc about the centroid), where dE/ds is the energy's rate along
-the push (minus the tissue's pull along it) and dE/dx its rate over the lateral state. The
-factor in front of g is how hard the body is pressed into contact per unit load: where it
-is not positive the ligaments pull the body off the fixed body against its load, and the
-settle says so (`Status.PULLED`).
+to first order (`first_order`: press and drive), where dE/ds is the energy's rate along the
+push and dE/dx its rate over the lateral state. The press is how hard the body is pressed
+into contact per unit load: where it is not positive the ligaments pull the body off the
+fixed body against its load, and the settle says so (`Status.PULLED`).
 """
 from __future__ import annotations
 
@@ -31,14 +30,10 @@ import numpy as np
 
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.typed import Floats, Pose
-from .search import Search, translated
+from .search import Search
 
 __all__ = ['Objective', 'Travel', 'Work', 'objective_for']
 
-# How far to lift a pose for the objective to reach a value: at most this many Newton or
-# bisection steps, to within this many resolutions of the value.
-_LIFT_STEPS = 40
-_LIFT_TOL = 1e-3
 # Poses whose tissue evaluation a Work objective keeps.
 _SEEN = 4
 
@@ -47,59 +42,36 @@ class Objective:
     """The climb's measure of a pose at contact, and its first-order model."""
 
     gain = ''        # what a gain is measured in, for the settle's reasons
-    lift_limit = math.inf   # deepest lift along Δ a single query may prove a gain with (m)
     # the share of the resolution the objective is climbed to: a smooth energy's maximum
     # lies in a valley the travel's resolution would leave a millimetre wide
     precision = 1.0
-    # smooth between contacts: a move promising less than the proof of rest can see is left
-    # to the proof, whose longer probes find the way along a shallow valley that short
-    # moves would zigzag across (the travel, piecewise flat, climbs on such moves)
-    smooth = False
 
     def value(self, pose: Pose) -> float:
         """The objective with the body at `pose` (m)."""
         raise NotImplementedError
 
-    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
-        """(k, 3) each patch's objective gradient over (slide e1, slide e2, arc) from its
-        travel gradient (k, 3), with the body at `pose`."""
+    def values(self, poses: Floats) -> Floats:
+        """(m,) the objective at each of `poses` (m, 4, 4)."""
         raise NotImplementedError
 
     def first_order(self, pose: Pose) -> tuple[float, Floats]:
         """(press, drive (3,)) at `pose`: a move x over (slide e1, slide e2, arc) that
         changes the travel by dt changes the objective by press dt + drive . x, to first
-        order (`gradients` is that for each patch's travel gradient)."""
+        order."""
         raise NotImplementedError
 
-    def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
-        """How far along Δ `target` must be lifted for the objective there to be `gain`
-        above its value at `base` lifted by `base_gap` (m). Where that is deeper than
-        `lift_limit` the query would prove nothing: the caller finds the contact instead."""
-        raise NotImplementedError
-
-    def first_lifts(self, targets: Floats, base: Pose, base_gap: float,
-                    gain: float) -> Floats:
-        """(m,) one Newton step of `lift_to` from no lift for each of `targets` (m, 4, 4):
-        at most the lift needed (the objective is concave along Δ)."""
-        return np.array([self.lift_to(t, base, base_gap, gain) for t in targets])
-
-    def target(self, base: Pose, base_gap: float, gain: float) -> float:
-        """The objective `gain` above its value at `base` lifted by `base_gap`."""
-        return self.value(translated(base, base_gap * self.search_push())) + gain
-
-    def search_push(self) -> Floats:
-        """Δ (3,)."""
+    def first_lifts(self, targets: Floats, base: Pose, gain: float) -> Floats:
+        """(m,) for each of `targets` (m, 4, 4), lateral moves of `base`, how far along Δ it
+        must be lifted at least for the objective there to be `gain` above its value at
+        `base` (one Newton step from no lift; inf where the body is not pressed on). The
+        objective is concave along Δ (the load's work is; the energy is convex in each
+        length, each length convex along Δ), so the step lifts no higher than needed: a
+        contact short of it proves that the target cannot gain."""
         raise NotImplementedError
 
     def pressing(self, pose: Pose) -> float:
         """How hard the body at `pose` is pressed into contact per unit load (1 for the
         travel); not positive: the tissue pulls it off against its load."""
-        raise NotImplementedError
-
-    def travel_guess(self, promised: float, lifted: float) -> float:
-        """Where contact is expected beyond a pose lifted by `lifted` after a move that
-        promised `promised` of the objective (m of travel; a guess that only speeds up
-        finding it)."""
         raise NotImplementedError
 
     def pulled_off(self, pose: Pose) -> str:
@@ -109,8 +81,7 @@ class Objective:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Travel(Objective):
-    """Geometry alone: the travel along the push (the patent's measure), bit for bit the
-    climb's arithmetic before soft tissue existed."""
+    """Geometry alone: the travel along the push (the patent's measure)."""
 
     search: Search
     gain = 'along the push'
@@ -119,33 +90,26 @@ class Travel(Objective):
         """The pose's depth along Δ (the travel up to a constant)."""
         return self.search.depth(pose)
 
-    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
-        """The travel gradients themselves."""
-        return travel_grads
+    def values(self, poses: Floats) -> Floats:
+        """(m,) each pose's depth along Δ."""
+        out: Floats = poses[:, :3, 3] @ self.search.push
+        return out
 
     def first_order(self, pose: Pose) -> tuple[float, Floats]:
         """The travel itself: (1, 0)."""
         return 1.0, np.zeros(3)
 
-    def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
-        """`gain + base_gap`: a lateral move leaves the depth along Δ as it was."""
-        return gain + base_gap
+    def first_lifts(self, targets: Floats, base: Pose, gain: float) -> Floats:
+        """`gain` for each: a lateral move leaves the depth along Δ as it was."""
+        return np.full(len(targets), gain)
 
     def pressing(self, pose: Pose) -> float:
         """Always pressed: the push is all there is."""
         return 1.0
 
-    def travel_guess(self, promised: float, lifted: float) -> float:
-        """The promise is travel: what is left of it beyond the lift."""
-        return max(promised - lifted, 0.0)
-
     def pulled_off(self, pose: Pose) -> str:
         """Never happens without tissue."""
         return ''
-
-    def search_push(self) -> Floats:
-        """Δ (3,)."""
-        return self.search.push
 
 
 @dataclass(slots=True, eq=False)
@@ -158,40 +122,37 @@ class Work(Objective):
     toward: Floats | None        # (3,) the point the load pulls toward, or None: the push
     arm: float                   # m of arc per radian of spin (the climb's)
     # the tissue's energy and rates at the last few poses asked about: a climb asks for the
-    # value, the pressing and the gradients at a pose in turn, and about its current pose
-    # between the others
+    # value, the pressing and the first-order terms at a pose in turn, and about its
+    # current pose between the others
     _seen: dict[bytes, tuple[float, float, Floats]] = field(default_factory=dict)
     gain = "in the load's work less the ligaments' energy (per unit load)"
     precision = 0.1
-    smooth = True
 
-    @property
-    def lift_limit(self) -> float:       # type: ignore[override]
-        """One translation step: a deeper lift can pass through an open sheet, or through
-        a place where the tissue's pull along Δ changes sign."""
-        return self.search.params.step_m
-
-    def search_push(self) -> Floats:
-        """Δ (3,)."""
-        return self.search.push
-
-    def first_lifts(self, targets: Floats, base: Pose, base_gap: float,
-                    gain: float) -> Floats:
-        """One Newton step from no lift for each of `targets` (m, 4, 4), the tissue
-        evaluated at all of them at once: the objective is concave along Δ (the load's work
-        is; the energy is convex in each length, each length convex along Δ), so each lifts
-        no higher than the exact lift (inf where the body is not pressed on)."""
-        want = self.target(base, base_gap, gain)
+    def first_lifts(self, targets: Floats, base: Pose, gain: float) -> Floats:
+        """One Newton step from no lift for each of `targets` (the base class), the tissue
+        weighed at all of them at once."""
+        want = self.value(base) + gain
         if self.tissue is None:
             energies, forces = np.zeros(len(targets)), np.zeros((len(targets), 3))
         else:
             energies, forces, _ = self.tissue.rates_many(targets)
+        work, lines = self._works(targets)
+        slope = lines @ self.search.push - forces @ self.search.push / self.load_n
         out = np.full(len(targets), math.inf)
-        for i, (pose, energy, force) in enumerate(zip(targets, energies, forces)):
-            slope = self._press(pose, self._along(force))
-            if slope > 0.0:
-                out[i] = (want - (self._work(pose) - float(energy) / self.load_n)) / slope
+        pressed = slope > 0.0
+        out[pressed] = (want - (work[pressed] - energies[pressed] / self.load_n)) \
+            / slope[pressed]
         return out
+
+    def _works(self, poses: Floats) -> tuple[Floats, Floats]:
+        """(m,) the load's work per unit load at each of `poses` (m, 4, 4) and (m, 3) its
+        line there (`_work` and `line`, for many poses at once)."""
+        centres = poses[:, :3, :3] @ self.search.pair.moving.centroid + poses[:, :3, 3]
+        if self.toward is None:
+            return centres @ self.search.push, np.broadcast_to(self.search.push, centres.shape)
+        d = self.toward - centres
+        length = np.sqrt(np.einsum('ij,ij->i', d, d))
+        return -length, d / length[:, None]
 
     def _along(self, force: Floats) -> float:
         """dE/ds / F: the tissue's rate along Δ per unit load, from its dE/dt `force`."""
@@ -239,6 +200,14 @@ class Work(Objective):
         per_load = self._tissue(pose)[0]
         return self._work(pose) - per_load
 
+    def values(self, poses: Floats) -> Floats:
+        """(m,) the objective at each of `poses` (m, 4, 4), the tissue weighed at all at
+        once."""
+        energies = np.zeros(len(poses)) if self.tissue is None else \
+            self.tissue.rates_many(poses)[0]
+        out: Floats = self._works(poses)[0] - energies / self.load_n
+        return out
+
     def _work(self, pose: Pose) -> float:
         """The load's work per unit load, l . c or -|o - c| (m)."""
         centre = self.search.centre(pose)
@@ -261,54 +230,9 @@ class Work(Objective):
         drive: Floats = np.array([float(line @ s.e1), float(line @ s.e2), 0.0]) - lateral
         return press, drive
 
-    def gradients(self, travel_grads: Floats, pose: Pose) -> Floats:
-        """G = (l . Δ - dE/ds / F) g + l_lateral - dE/dx / F (module docstring)."""
-        press, drive = self.first_order(pose)
-        out: Floats = (press * travel_grads + drive) * self.search.free
-        return out
-
     def pressing(self, pose: Pose) -> float:
         """l . Δ - dE/ds / F."""
         return self._press(pose, self._rates(pose)[0])
-
-    def travel_guess(self, promised: float, lifted: float) -> float:
-        """None: the promise is work, not travel (contact is searched from the pose)."""
-        return 0.0
-
-    def lift_to(self, target: Pose, base: Pose, base_gap: float, gain: float) -> float:
-        """The lift h with the objective at `target` + h Δ equal to the target value:
-        Newton's method kept inside a bracket that bisection shrinks (the objective rises
-        along Δ while the body is pressed on; stiff tissue bends it strongly). A lift
-        beyond `lift_limit` either way is returned as soon as it is bracketed there: the
-        caller then weighs the contact itself."""
-        s, limit = self.search, self.lift_limit
-        want = self.target(base, base_gap, gain)
-
-        def rise(h: float) -> tuple[float, float]:
-            lifted = translated(target, h * s.push)
-            return self.value(lifted) - want, self.pressing(lifted)
-
-        miss, slope = rise(0.0)
-        if slope <= 0.0:
-            return math.inf                  # not pressed on: no lift proves anything
-        lo, hi = (-math.inf, 0.0) if miss > 0.0 else (0.0, math.inf)
-        h = -miss / slope
-        for _ in range(_LIFT_STEPS):
-            if not lo < h < hi:              # Newton left the bracket: bisect instead
-                h = 0.5 * (lo + hi) if math.isfinite(lo) and math.isfinite(hi) else \
-                    (2.0 * hi - s.params.resolution_m if math.isfinite(hi) else
-                     2.0 * lo + s.params.resolution_m)
-            if abs(h) > 2.0 * limit:
-                return h
-            miss, slope = rise(h)
-            if abs(miss) <= _LIFT_TOL * s.params.resolution_m:
-                return h
-            if miss > 0.0:
-                hi = h
-            else:
-                lo = h
-            h = h - miss / slope if slope > 0.0 else 0.5 * (lo + hi)
-        return math.inf                      # not found: the caller weighs the contact
 
     def pulled_off(self, pose: Pose) -> str:
         """The ligaments' pull along -Δ against the load's along Δ, in newtons."""

@@ -28,7 +28,7 @@ from kneeseat_core.table import PoseTable, write_table
 from .continuity import continuity
 from .phases import sweep, SweepResult
 
-__all__ = ['make_table', 'build_table', 'summary_line', 'backed_out_lines']
+__all__ = ['make_table', 'build_table', 'summary_line', 'queries_per_cell', 'backed_out_lines']
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
         'summary': {'cells': result.cells, 'converged': int(result.converged.sum()),
                     'wall_s': round(result.wall_s, 3),
                     'collision_checks': int(result.collision_checks),
-                    **({'ray_casts': int(result.ray_casts)} if result.ray_casts else {})},
+                    'travels': int(result.travels), 'fcl_queries': int(result.fcl_checks)},
         'failures': list(result.failures),
         # how each cell's settle ended (codes: kneeseat_core.status.Status)
         'cells': {'status_names': {str(k): v for k, v in STATUS_NAMES.items()},
@@ -84,8 +84,6 @@ def make_table(config: KneeConfig, result: SweepResult) -> PoseTable:
         'backed_out': _backed_out(config, result),
         'soft_tissue': _soft_tissue(config),
     }
-    if config.settle.travel == 'rays':
-        metadata['hidden_gap'] = _hidden_gaps(config)
     return PoseTable(config.flexion_rad, config.varus_rad, result.position_m,
                      result.orientation_xyzw, result.converged, result.iterations, metadata)
 
@@ -103,21 +101,6 @@ def _soft_tissue(config: KneeConfig) -> dict[str, Any] | None:
                                                                  config.placed_before(b)))}
                       for b in config.bodies},
             'method': config.settle.method}
-
-
-def _hidden_gaps(config: KneeConfig) -> dict[str, dict[str, float]]:
-    """Per moving body, the gap vertex rays can miss between it and the reference where an
-    edge crosses an edge (`kneeseat_core.meshes.hidden_gap_m`): median and 99th
-    percentile, micrometres (the travel by rays may exceed python-fcl's by that much)."""
-    from kneeseat_core.meshes import hidden_gap_m, load_meshes
-    reference = load_meshes([str(p) for p in config.reference.meshes], config.units,
-                            quiet=True)
-    out = {}
-    for spec in config.bodies:
-        median, p99 = hidden_gap_m(reference, load_meshes([str(p) for p in spec.meshes],
-                                                          config.units, quiet=True))
-        out[spec.name] = {'median_um': round(median * 1e6, 2), 'p99_um': round(p99 * 1e6, 1)}
-    return out
 
 
 def _backed_out(config: KneeConfig, result: SweepResult) -> dict[str, Any]:
@@ -156,6 +139,17 @@ def build_table(config: KneeConfig, out: Path, executor: Executor,
     return table
 
 
+def queries_per_cell(s: dict[str, Any]) -> str:
+    """The summary's queries per cell: exact travels and python-fcl queries (tables built
+    before the exact travel: collision checks, and ray casts where there were any)."""
+    cells = max(s['cells'], 1)
+    if 'travels' in s:
+        return (f'{s["travels"] / cells:.1f} exact travels and '
+                f'{s["fcl_queries"] / cells:.1f} python-fcl queries per cell')
+    return (f'{s["collision_checks"] / cells:.0f} collision checks per cell'
+            + (f', {s["ray_casts"] / cells:.0f} ray casts per cell' if s.get('ray_casts') else ''))
+
+
 def summary_line(table: PoseTable, out: Path) -> str:
     """One-paragraph summary of a finished build."""
     s = table.metadata['summary']
@@ -164,20 +158,13 @@ def summary_line(table: PoseTable, out: Path) -> str:
                          for i, name in enumerate(table.bodies))
     line = (f'{out}: {s["cells"]} cells, {100 * conv:.1f}% converged ({per_body}), '
             f'{s["wall_s"]:.1f} s wall, {s["cells"] / max(s["wall_s"], 1e-9):.1f} cells/s, '
-            f'{s["collision_checks"] / max(s["cells"], 1):.0f} collision checks per cell'
-            + (f', {s["ray_casts"] / max(s["cells"], 1):.0f} ray casts per cell'
-               if s.get('ray_casts') else ''))
+            + queries_per_cell(s))
     cont = table.metadata.get('continuity')
     if isinstance(cont, dict):
         over = sum(sum(b['pairs_over_bound'].values()) for b in cont['bodies'].values())
         line += (f'; {over} neighbour pairs over {cont["bound_mm"]:g} mm / '
                  f'{cont["bound_deg"]:g} deg, {len(cont["branch_changes"])} of them branch '
                  'changes between cells at rest')
-    gaps = table.metadata.get('hidden_gap')
-    if isinstance(gaps, dict):
-        line += '; vertex rays may miss a gap where edges cross of ' + ', '.join(
-            f'{name} {g["median_um"]:g} um median, {g["p99_um"]:g} um 99th percentile'
-            for name, g in gaps.items())
     tissue = table.metadata.get('soft_tissue')
     if isinstance(tissue, dict):
         lig = tissue['ligaments']

@@ -85,7 +85,8 @@ class ChainResult:
     reasons: tuple[str, ...]
     elapsed_s: float
     backed_out_m: Floats      # (n,) how far each kept settle backed its start out
-    ray_casts: int = 0        # casts of the travel by rays (settle parameter `travel`)
+    travels: int = 0          # exact travels measured (of `collision_checks`)
+    fcl_checks: int = 0       # python-fcl queries (of `collision_checks`)
 
 
 def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
@@ -113,7 +114,7 @@ def run_chain(job: ChainJob) -> ChainResult:
     status = np.full(n, Status.FAILED, dtype=np.int8)
     backed = np.zeros(n)
     reasons: list[str] = []
-    checks = casts = 0
+    checks = travels = fcl = 0
     previous, previous_attitude = job.start, job.start_attitude
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
@@ -126,7 +127,8 @@ def run_chain(job: ChainJob) -> ChainResult:
                 retry = settle(fixed, moving, cold_start(attitude, params), params, anchor,
                                tissue)
                 checks += result.collision_checks
-                casts += result.ray_casts
+                travels += result.travels
+                fcl += result.fcl_checks
                 result = retry if retry.converged else result
         except (NoContactError, SettleError) as err:
             poses[i] = start
@@ -138,9 +140,10 @@ def run_chain(job: ChainJob) -> ChainResult:
         status[i] = result.status
         backed[i] = result.backed_out_m
         checks += result.collision_checks
-        casts += result.ray_casts
+        travels += result.travels
+        fcl += result.fcl_checks
         reasons.append(result.reason)
         if result.converged:   # a failed cell never seeds its neighbours
             previous, previous_attitude = result.pose, attitude
     return ChainResult(job.body, job.cells, poses, converged, iterations, status, checks,
-                       tuple(reasons), time.perf_counter() - started, backed, casts)
+                       tuple(reasons), time.perf_counter() - started, backed, travels, fcl)

@@ -72,7 +72,8 @@ class SweepResult:
     anchor_cell: tuple[int, int]    # (flexion, varus) index the anchors belong to
     backed_out_m: Floats            # (B, F, V) how far each cell's start was backed out
     failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
-    ray_casts: int = 0              # casts of the travel by rays (settle parameter `travel`)
+    travels: int = 0                # exact travels measured (of `collision_checks`)
+    fcl_checks: int = 0             # python-fcl queries (of `collision_checks`)
 
     @property
     def cells(self) -> int:
@@ -161,7 +162,8 @@ class _Sweep:
         self.backed = np.zeros((nb, nf, nv))
         self.failures: list[str] = []
         self.checks = 0
-        self.casts = 0
+        self.travels = 0
+        self.fcl = 0
         self.centre_attitudes = [config.attitude(spec, flex[self.f0], var[self.v0])
                                  for spec in config.bodies]
         self.anchors = np.array([neutral_pose(a0) for a0 in self.centre_attitudes])
@@ -279,7 +281,8 @@ class _Sweep:
             else:
                 settled.append((b, f, v))
         self.checks += res.collision_checks
-        self.casts += res.ray_casts
+        self.travels += res.travels
+        self.fcl += res.fcl_checks
         if self.progress:                 # a copy across varus is cells of the table too
             self.progress(len(settled))
         return settled
@@ -290,4 +293,4 @@ class _Sweep:
                            quat_from_matrix(self.poses[..., :3, :3]), self.converged,
                            self.iterations, self.status, self.checks, wall_s,
                            self.scene.mesh_sha256, self.anchors, (self.f0, self.v0),
-                           self.backed, tuple(self.failures), self.casts)
+                           self.backed, tuple(self.failures), self.travels, self.fcl)

@@ -20,13 +20,12 @@ was measured from. Provenance, shown when present:
   kneeseat_version, built (ISO 8601 UTC), arrays_sha256 (checked on load), name,
   config (the knee config as read, with a "resolved" part: absolute mesh paths, settle
   parameters, grid in degrees), settle (the settle parameters), summary ({"cells",
-  "converged", "wall_s", "collision_checks"}, python-fcl's queries, and "ray_casts": casts
-  of rays, the proof's and (travel by rays) the travel's), failures (the first
+  "converged", "wall_s", "collision_checks"}, the queries of all settles, and "travels"
+  and "fcl_queries": how many of them were exact travels and python-fcl queries; tables
+  built before the exact travel have "ray_casts" instead), failures (the first
   non-converged reasons),
   cells ({"status_names", "status"}: each cell's `kneeseat_core.status.Status` code),
-  continuity (`kneeseat_core.sweep.continuity`), backed_out (per body: starts in collision),
-  hidden_gap (travel by rays only: per body {"median_um", "p99_um"}, the gap vertex rays
-  can miss between it and the reference where edges cross).
+  continuity (`kneeseat_core.sweep.continuity`), backed_out (per body: starts in collision).
 
 `arrays_sha256` is the SHA-256 of, for each array in `ARRAY_NAMES` order, the UTF-8 line
 `'<name> <dtype> <d0>x<d1>x...\\n'` followed by the array's C-order bytes, where the array is

@@ -1,0 +1,105 @@
+"""The travel to first order about a pose at contact, from the features the exact travel
+returns (`kneeseat_core.meshes.sweep`).
+
+Each feature k closes at a gap g_k along Δ from the pose; a lateral move x = (slide e1,
+slide e2, arc) moves the moving body's point at the feature by dp = x0 e1 + x1 e2 + x2 (Δ x
+(p - c)) / arm and changes that gap by -n . dp / n . Δ (n its normal), so the travel after
+the move is, to first order,
+
+    s(x) = min_k (g_k + a_k . x).
+
+For pure slides each term is exact while its feature stays one (the vertex over the same
+triangle, the crossing on the same edges); the climb uses the model to order its moves, to
+propose the move that climbs where several contacts hold the body at once (`best_move`: the
+objective press s(x) + drive . x is then best raised along a combination of slide and spin
+that keeps every contact, a linear program in (x, s)) and to name the pairs of triangles
+likely to stop a move (its witnesses), never to decide a gain
+(`kneeseat_core.settle.climb`). The linear program is solved by a small simplex written by
+hand (`_simplex.cpp`, compiled with the package): the climb asks it at every fine step, and
+a general solver's setup alone costs more than that (scipy's linprog about 3 ms).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kneeseat_core.typed import Floats, Ints
+from . import _simplex
+
+__all__ = ['Model', 'STEEPEST', 'best_move']
+
+# A feature whose gap changes faster than this with a move (m of gap per m of move, in any
+# coordinate) is left out of the model: a crossing of two edges nearly parallel seen along
+# Δ, a triangle seen edge on - their slope holds for a sliver of a move. A lateral move of
+# length l goes at most this deep into what the model keeps.
+STEEPEST = 3.0
+_EPS = 1e-12
+# a slope below a nanometre per metre is rounding
+_FLAT_SLOPE = 1e-9
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Model:
+    """The travel about a pose to first order: gaps (k,) and slopes (k, 3) over (slide e1,
+    slide e2, arc), with the two triangles (moving, fixed) of each feature (k, 2)."""
+
+    gaps: Floats
+    slopes: Floats
+    faces: Ints
+
+    @classmethod
+    def of(cls, gaps: Floats, normals: Floats, points: Floats, faces: Ints, push: Floats,
+           e1: Floats, e2: Floats, centre: Floats, arm: float, free: Floats) -> Model:
+        """The model of features (`Touch`): gaps (k,), unit normals (k, 3) with n . Δ >= 0,
+        the moving body's points there (k, 3), their triangles (k, 2); spins about the axis
+        through `centre` parallel to Δ, one radian per `arm` of arc; `free` (3,) zero for a
+        locked move. Features steeper than `STEEPEST` are left out."""
+        lever = np.cross(push, points - centre) / arm
+        along = normals @ push
+        across = np.stack([normals @ e1, normals @ e2, np.einsum('ij,ij->i', normals, lever)],
+                          axis=1) * free
+        kept = np.max(np.abs(across), axis=1) <= STEEPEST * along
+        return cls(gaps[kept], -across[kept] / along[kept, None], faces[kept])
+
+    def travel(self, moves: Floats) -> Floats:
+        """(m,) the modelled travel after each of `moves` (m, 3)."""
+        out: Floats = np.min(self.gaps[None, :] + moves @ self.slopes.T, axis=1)
+        return out
+
+    def witnesses(self, moves: Floats, count: int) -> Ints:
+        """(m, count, 2) for each of `moves` (m, 3) the triangles of the `count` features
+        the model says close first after it (fewer where there are fewer features)."""
+        predicted = self.gaps[None, :] + moves @ self.slopes.T
+        k = min(count, len(self.gaps))
+        first = np.argpartition(predicted, k - 1, axis=1)[:, :k]
+        picked: Ints = self.faces[first]
+        return picked
+
+
+def best_move(model: Model, press: float, drive: Floats, radius: Floats) -> tuple[Floats, float]:
+    """The move x (3,) with |x_i| <= radius_i that maximises press s(x) + drive . x under
+    the model, and the gain that promises over no move."""
+    # a slope below a nanometre per metre is rounding (a pivot on it would blow the tableau
+    # up): none
+    gaps = model.gaps
+    slopes = np.where(np.abs(model.slopes) < _FLAT_SLOPE, 0.0, model.slopes)
+    k = len(gaps)
+    floor = float(np.min(gaps))
+    # the least travel any move in the box can model: s - lowest >= 0 costs nothing
+    lowest = float(np.min(gaps - np.abs(slopes) @ radius)) - _EPS
+    # columns: x+ (3), x- (3), s - lowest (1); all >= 0, the origin (no move) feasible
+    a = np.zeros((k + 6, 7))
+    b = np.zeros(k + 6)
+    a[:k, :3], a[:k, 3:6], a[:k, 6] = -slopes, slopes, 1.0
+    b[:k] = gaps - lowest
+    for i in range(3):
+        a[k + i, i] = a[k + 3 + i, 3 + i] = 1.0
+        b[k + i] = b[k + 3 + i] = radius[i]
+    cost = np.concatenate([drive, -drive, [press]])
+    v = np.frombuffer(_simplex.maximise(a, b, cost), dtype=np.float64)
+    x = np.clip(v[:3] - v[3:6], -radius, radius)
+    # what the model promises there, measured on the model itself (a rounding in the
+    # tableau can promise what the box does not hold)
+    travel = float(np.min(gaps + slopes @ x))
+    return x, press * (travel - floor) + float(drive @ x)
