@@ -1,7 +1,10 @@
 """One chain of cells of one body, settled in order in a worker, each from its neighbour.
 
 A warm start keeps the neighbour's spin about the push and its position relative to the
-joint (both turned by the change of attitude), backed off one step along the push. Every
+joint (both turned by the change of attitude) and, where the rest before the neighbour in
+the chain is known too, carries the change from that one to the neighbour on once more
+(rests move smoothly along a chain: on the total knee's ribs the start then lies a quarter
+as far from the rest); it is backed off one step along the push. Every
 cell's search envelope is measured from the same place whatever the chain carried in: the
 body's rest at the centre cell carried to the cell's attitude (`carried`), or, for the
 centre cell itself and a body whose centre cell did not converge, the body as delivered
@@ -90,9 +93,18 @@ class ChainResult:
 
 
 def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
-               push: Floats, back_off_m: float) -> Pose:
-    """Start pose at a new attitude from a neighbour's equilibrium (module docstring)."""
+               push: Floats, back_off_m: float, before: tuple[Pose, Floats] | None = None
+               ) -> Pose:
+    """Start pose at a new attitude from a neighbour's equilibrium (module docstring); with
+    the rest `before` it (pose, attitude) along the chain, the change from that one to the
+    neighbour's carried on once more."""
     start = carried(previous, previous_attitude, attitude)
+    if before is not None:
+        older = carried(before[0], before[1], attitude)
+        start[:3, 3] += start[:3, 3] - older[:3, 3]
+        # the same turn again, made a rotation once more (the products drift off it)
+        u, _, vt = np.linalg.svd(start[:3, :3] @ older[:3, :3].T @ start[:3, :3])
+        start[:3, :3] = u @ vt
     start[:3, 3] -= back_off_m * push
     return start
 
@@ -116,9 +128,10 @@ def run_chain(job: ChainJob) -> ChainResult:
     reasons: list[str] = []
     checks = travels = fcl = 0
     previous, previous_attitude = job.start, job.start_attitude
+    before: tuple[Pose, Floats] | None = None
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
-                           params.step_m)
+                           params.step_m, before)
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:
@@ -144,6 +157,9 @@ def run_chain(job: ChainJob) -> ChainResult:
         fcl += result.fcl_checks
         reasons.append(result.reason)
         if result.converged:   # a failed cell never seeds its neighbours
+            before = (previous, previous_attitude) if i > 0 and converged[i - 1] else None
             previous, previous_attitude = result.pose, attitude
+        else:
+            before = None
     return ChainResult(job.body, job.cells, poses, converged, iterations, status, checks,
                        tuple(reasons), time.perf_counter() - started, backed, travels, fcl)
