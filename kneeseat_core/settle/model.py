@@ -35,6 +35,8 @@ __all__ = ['Model', 'STEEPEST', 'best_move']
 # length l goes at most this deep into what the model keeps.
 STEEPEST = 3.0
 _EPS = 1e-12
+# the cost of a move per unit of its length, relative to the objective's own rates
+_STILL = 1e-6
 # a slope below a nanometre per metre is rounding
 _FLAT_SLOPE = 1e-9
 
@@ -96,7 +98,10 @@ def best_move(model: Model, press: float, drive: Floats, radius: Floats) -> tupl
     for i in range(3):
         a[k + i, i] = a[k + 3 + i, 3 + i] = 1.0
         b[k + i] = b[k + 3 + i] = radius[i]
-    cost = np.concatenate([drive, -drive, [press]])
+    # a move that gains nothing is not made: a direction the model holds level (a slide
+    # along a groove) stays at no move instead of running to the box's corner
+    still = _STILL * max(abs(press), float(np.max(np.abs(drive))))
+    cost = np.concatenate([drive - still, -drive - still, [press]])
     v = np.frombuffer(_simplex.maximise(a, b, cost), dtype=np.float64)
     x = np.clip(v[:3] - v[3:6], -radius, radius)
     # what the model promises there, measured on the model itself (a rounding in the
