@@ -85,12 +85,11 @@ def _surfaces(faces: Ints, count: int) -> Ints:
     """(m,) label of the surface (faces joined along shared edges) of each face."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
-    edges = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    ends = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    key = ends[:, 0] * (int(faces.max()) + 1) + ends[:, 1]
     owner = np.repeat(np.arange(count), 3)
-    _, inverse = np.unique(edges, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(inverse, kind='stable')
-    same = inverse[order][1:] == inverse[order][:-1]
+    order = np.argsort(key, kind='stable')
+    same = key[order][1:] == key[order][:-1]
     a, b = owner[order][:-1][same], owner[order][1:][same]
     graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(count, count))
     _, labels = connected_components(graph, directed=False)
