@@ -462,7 +462,6 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     if (!want_features) return;
     Feature f;
     f.gap = least;
-    f.room = room;
     f.kind = kind;
     f.moving_face = mb.face_id[ta];
     f.fixed_face = fb.face_id[tb];
@@ -494,6 +493,7 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
         double length = std::sqrt(dot3(n, n));
         for (int k = 0; k < 3; ++k) n[k] = length > 0.0 ? n[k] / length : 0.0;
     }
+    f.room = room;
     double sign = dot3(n, d) >= 0.0 ? 1.0 : -1.0;
     for (int k = 0; k < 3; ++k) f.normal[k] = sign * n[k];
     features.push_back(f);
