@@ -648,17 +648,38 @@ PyMethodDef view_methods[] = {
     {"filled", reinterpret_cast<PyCFunction>(view_filled), METH_NOARGS, "Nodes bounded so far."},
     {nullptr, nullptr, 0, nullptr}};
 
+// A call's two views, checked: the fixed body's (side -1) and the moving body's (side +1).
+bool take_views(PyObject *fo, PyObject *mo, Sweep &s) {
+    s.fixed = reinterpret_cast<PyView *>(fo)->view;
+    s.moving = reinterpret_cast<PyView *>(mo)->view;
+    if (s.fixed && s.moving && s.fixed->side == -1 && s.moving->side == 1) return true;
+    PyErr_SetString(PyExc_ValueError, "a fixed view (side -1) and a moving view (side +1)");
+    return false;
+}
+
+// The arguments of witnesses and vertex_gaps: (fixed_view, moving_view, poses (m, 4, 4),
+// indices (m, k, width) of int64, behind). On success both buffers are held and m, k set;
+// on failure nothing is held and the error is set (`usage` names the shapes).
+bool parse_indexed(PyObject *args, Sweep &s, Py_buffer &poses, Py_buffer &indices, Py_ssize_t width,
+                   const char *usage, Py_ssize_t &m, Py_ssize_t &k, double &behind) {
+    PyObject *fo, *mo, *po, *io;
+    if (!PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind)) return false;
+    if (!take_views(fo, mo, s)) return false;
+    if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
+    if (!get_buffer(io, &indices, "q", 8, "indices")) { PyBuffer_Release(&poses); return false; }
+    m = poses.len / 128;
+    k = m > 0 ? indices.len / (8 * width * m) : 0;
+    if (poses.len % 128 == 0 && indices.len == 8 * width * m * k) return true;
+    PyBuffer_Release(&poses); PyBuffer_Release(&indices);
+    PyErr_SetString(PyExc_ValueError, usage);
+    return false;
+}
+
 bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window) {
     PyObject *fo, *mo, *po;
     if (!PyArg_ParseTuple(args, "O!O!Oddd", &ViewType, &fo, &ViewType, &mo, &po, &s.behind, &window, &s.limit))
         return false;
-    s.fixed = reinterpret_cast<PyView *>(fo)->view;
-    s.moving = reinterpret_cast<PyView *>(mo)->view;
-    if (!s.fixed || !s.moving) { PyErr_SetString(PyExc_ValueError, "uninitialised view"); return false; }
-    if (s.fixed->side != -1 || s.moving->side != 1) {
-        PyErr_SetString(PyExc_ValueError, "the fixed view has side -1, the moving view side +1");
-        return false;
-    }
+    if (!take_views(fo, mo, s)) return false;
     if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
     if (poses.len % 128 != 0 || !(s.behind >= 0.0) || !(window >= 0.0) || !(s.limit >= 0.0)) {
         PyErr_SetString(PyExc_ValueError, "poses (k, 4, 4); behind, window and limit not negative");
@@ -723,28 +744,20 @@ PyObject *contacts(PyObject *, PyObject *args) {
 // fixed face) as given, behind) -> (m, k) the least gap of each pair at its pose (inf: the
 // shadows do not overlap or the pair lies wholly behind the pose lowered by `behind`)
 PyObject *witnesses(PyObject *, PyObject *args) {
-    PyObject *fo, *mo, *po, *qo;
-    double behind;
-    if (!PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &qo, &behind)) return nullptr;
+    static const char usage[] = "witnesses: poses (m, 4, 4) and pairs (m, k, 2) of face indices";
     Sweep s;
-    s.fixed = reinterpret_cast<PyView *>(fo)->view;
-    s.moving = reinterpret_cast<PyView *>(mo)->view;
-    if (!s.fixed || !s.moving || s.fixed->side != -1 || s.moving->side != 1) {
-        PyErr_SetString(PyExc_ValueError, "a fixed view (side -1) and a moving view (side +1)");
-        return nullptr;
-    }
     Py_buffer poses, pairs;
-    if (!get_buffer(po, &poses, "d", 8, "poses")) return nullptr;
-    if (!get_buffer(qo, &pairs, "q", 8, "pairs")) { PyBuffer_Release(&poses); return nullptr; }
-    Py_ssize_t m = poses.len / 128, k = m > 0 ? pairs.len / (16 * m) : 0;
+    Py_ssize_t m, k;
+    double behind;
+    if (!parse_indexed(args, s, poses, pairs, 2, usage, m, k, behind)) return nullptr;
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
     const int64_t *q = static_cast<const int64_t *>(pairs.buf);
-    bool ok = poses.len % 128 == 0 && pairs.len == 16 * m * k;
+    bool ok = true;
     Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
     for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = q[2 * i] >= 0 && q[2 * i] < nm && q[2 * i + 1] >= 0 && q[2 * i + 1] < nf;
     if (!ok) {
         PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
-        PyErr_SetString(PyExc_ValueError, "witnesses: poses (m, 4, 4) and pairs (m, k, 2) of face indices");
+        PyErr_SetString(PyExc_ValueError, usage);
         return nullptr;
     }
     std::vector<double> out(m * k);
@@ -803,28 +816,20 @@ double vertex_gap(Sweep &s, int32_t i, double behind, std::vector<int32_t> &stac
 // behind) -> (m,) the least gap along d from those vertices up to the fixed body at each
 // pose (a vertex lying on a face more than `behind` above the face does not count)
 PyObject *vertex_gaps(PyObject *, PyObject *args) {
-    PyObject *fo, *mo, *po, *vo;
-    double behind;
-    if (!PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &vo, &behind)) return nullptr;
+    static const char usage[] = "vertex_gaps: poses (m, 4, 4) and vertices (m, k)";
     Sweep s;
-    s.fixed = reinterpret_cast<PyView *>(fo)->view;
-    s.moving = reinterpret_cast<PyView *>(mo)->view;
-    if (!s.fixed || !s.moving || s.fixed->side != -1 || s.moving->side != 1) {
-        PyErr_SetString(PyExc_ValueError, "a fixed view (side -1) and a moving view (side +1)");
-        return nullptr;
-    }
     Py_buffer poses, verts;
-    if (!get_buffer(po, &poses, "d", 8, "poses")) return nullptr;
-    if (!get_buffer(vo, &verts, "q", 8, "vertices")) { PyBuffer_Release(&poses); return nullptr; }
-    Py_ssize_t m = poses.len / 128, k = m > 0 ? verts.len / (8 * m) : 0;
+    Py_ssize_t m, k;
+    double behind;
+    if (!parse_indexed(args, s, poses, verts, 1, usage, m, k, behind)) return nullptr;
     const int64_t *v = static_cast<const int64_t *>(verts.buf);
     Py_ssize_t nv = static_cast<Py_ssize_t>(s.moving->body->vertices.size() / 3);
-    bool ok = poses.len % 128 == 0 && verts.len == 8 * m * k;
+    bool ok = true;
     for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = v[i] >= 0 && v[i] < nv;
     if (!ok || s.fixed->body->nodes.empty()) {
         PyBuffer_Release(&poses); PyBuffer_Release(&verts);
         if (!ok) {
-            PyErr_SetString(PyExc_ValueError, "vertex_gaps: poses (m, 4, 4) and vertices (m, k)");
+            PyErr_SetString(PyExc_ValueError, usage);
             return nullptr;
         }
         std::vector<double> none(m, kInf);
