@@ -210,7 +210,9 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
     """Probes about a contact pose, as the climb makes them: every pair of triangles within
     0.3 mm of touching there, and the vertices of its moving triangles, asked at each
     probe. Where a gap is short of the probe's lift, python-fcl must find the probe lifted
-    by it in collision. Returns (refuted probes, probes)."""
+    by it in collision. Searches told to stop short of the lift (`short_of`) must say short
+    exactly where the whole search does, and otherwise give its answer. Returns (refuted
+    probes, probes)."""
     pair = CollisionPair(fixed, moving)
     free = backed(pair, start, push)
     free[:3, 3] += (fcl_travel(pair, free, push) - 1e-7) * push
@@ -225,6 +227,15 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
     vertices = np.broadcast_to(np.unique(moving.faces[touch.faces[:, 0]]),
                                (len(probes), len(np.unique(moving.faces[touch.faces[:, 0]]))))
     reached = sweep.vertex_gaps(probes, vertices, 1e-3)
+    stopped = sweep.vertex_gaps(probes, vertices, 1e-3, lifts)
+    assert np.array_equal(stopped < lifts, reached < lifts)
+    assert np.array_equal(stopped[reached >= lifts], reached[reached >= lifts])
+    for probe, lift in zip(probes, lifts):
+        whole = sweep.touch(probe, 1e-3, 3e-4)
+        short = sweep.touch(probe, 1e-3, 3e-4, short_of=lift)
+        assert not whole.buried and (short.travel < lift) == (whole.travel < lift)
+        if whole.travel >= lift:
+            assert short.travel == whole.travel and np.array_equal(short.gaps, whole.gaps)
     refuted = (gaps < lifts) | (reached < lifts)
     for probe, lift, no in zip(probes, lifts, refuted):
         if no:

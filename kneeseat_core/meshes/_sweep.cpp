@@ -289,6 +289,7 @@ struct Sweep {
     double R[9], T[3];                 // fixed_from_moving
     double cos_, sin_, du, dw, dh;     // moving view -> fixed view: q = Rot q' + (du, dw)
     double behind, window, limit;
+    double short_of = -kInf;           // stop once the travel is known to be below this
     uint32_t stamp = 0;
     bool want_features = false;
     // results
@@ -523,7 +524,7 @@ void Sweep::run() {
                 for (int j = nb.first; j < nb.first + nb.count; ++j) {
                     if (!moving->takes_part(j)) continue;
                     triangle_pair(j, i);
-                    if (buried) return;
+                    if (buried || best < short_of) return;
                 }
             }
             continue;
@@ -658,12 +659,15 @@ bool take_views(PyObject *fo, PyObject *mo, Sweep &s) {
 }
 
 // The arguments of witnesses and vertex_gaps: (fixed_view, moving_view, poses (m, 4, 4),
-// indices (m, k, width) of int64, behind). On success both buffers are held and m, k set;
+// indices (m, k, width) of int64, behind[, extra] (only where `extra` is given)). On success both buffers are held and m, k set;
 // on failure nothing is held and the error is set (`usage` names the shapes).
 bool parse_indexed(PyObject *args, Sweep &s, Py_buffer &poses, Py_buffer &indices, Py_ssize_t width,
-                   const char *usage, Py_ssize_t &m, Py_ssize_t &k, double &behind) {
+                   const char *usage, Py_ssize_t &m, Py_ssize_t &k, double &behind,
+                   PyObject **extra = nullptr) {
     PyObject *fo, *mo, *po, *io;
-    if (!PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind)) return false;
+    if (extra ? !PyArg_ParseTuple(args, "O!O!OOd|O", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind, extra)
+              : !PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind))
+        return false;
     if (!take_views(fo, mo, s)) return false;
     if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
     if (!get_buffer(io, &indices, "q", 8, "indices")) { PyBuffer_Release(&poses); return false; }
@@ -677,12 +681,14 @@ bool parse_indexed(PyObject *args, Sweep &s, Py_buffer &poses, Py_buffer &indice
 
 bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window) {
     PyObject *fo, *mo, *po;
-    if (!PyArg_ParseTuple(args, "O!O!Oddd", &ViewType, &fo, &ViewType, &mo, &po, &s.behind, &window, &s.limit))
+    if (!PyArg_ParseTuple(args, "O!O!Oddd|d", &ViewType, &fo, &ViewType, &mo, &po, &s.behind, &window,
+                          &s.limit, &s.short_of))
         return false;
     if (!take_views(fo, mo, s)) return false;
     if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
-    if (poses.len % 128 != 0 || !(s.behind >= 0.0) || !(window >= 0.0) || !(s.limit >= 0.0)) {
-        PyErr_SetString(PyExc_ValueError, "poses (k, 4, 4); behind, window and limit not negative");
+    if (poses.len % 128 != 0 || !(s.behind >= 0.0) || !(window >= 0.0) || !(s.limit >= 0.0) ||
+        std::isnan(s.short_of)) {
+        PyErr_SetString(PyExc_ValueError, "poses (k, 4, 4); behind, window and limit not negative, short_of a number");
         PyBuffer_Release(&poses);
         return false;
     }
@@ -690,7 +696,9 @@ bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, 
     return true;
 }
 
-// travels(fixed_view, moving_view, poses, behind, window, limit) -> (travels, buried, pairs)
+// travels(fixed_view, moving_view, poses, behind, window, limit[, short_of])
+//   -> (travels, buried, pairs); a travel below short_of is where the search stopped: the
+//   travel is at most that
 PyObject *travels(PyObject *, PyObject *args) {
     Sweep s;
     Py_buffer poses;
@@ -712,8 +720,9 @@ PyObject *travels(PyObject *, PyObject *args) {
                          reinterpret_cast<const char *>(buried.data()), count, s.pairs);
 }
 
-// contacts(fixed_view, moving_view, pose, behind, window, limit)
-//   -> (travel, buried, features (bytes of Feature), pairs)
+// contacts(fixed_view, moving_view, pose, behind, window, limit[, short_of])
+//   -> (travel, buried, features (bytes of Feature), pairs); a travel below short_of is
+//   where the search stopped (the travel is at most that, the features are partial)
 PyObject *contacts(PyObject *, PyObject *args) {
     Sweep s;
     Py_buffer poses;
@@ -777,12 +786,12 @@ PyObject *witnesses(PyObject *, PyObject *args) {
     return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), static_cast<Py_ssize_t>(out.size() * 8));
 }
 
-// The least gap along d from the moving body's vertex `i` (placed by the sweep) up to a
-// front face of the fixed body, over faces no more than `behind` below it (inf: none).
-double vertex_gap(Sweep &s, int32_t i, double behind, std::vector<int32_t> &stack) {
+// The least of `best` and the gaps along d from the moving body's vertex `i` (placed by
+// the sweep) up to a front face of the fixed body, over faces no more than `behind` below
+// it (a branch that cannot go below `best` is not opened).
+double vertex_gap(Sweep &s, int32_t i, double behind, double best, std::vector<int32_t> &stack) {
     const double *q = s.moving_vertex(i);
     const Body &fb = *s.fixed->body;
-    double best = kInf;
     stack.clear();
     stack.push_back(0);
     while (!stack.empty()) {
@@ -813,19 +822,32 @@ double vertex_gap(Sweep &s, int32_t i, double behind, std::vector<int32_t> &stac
 }
 
 // vertex_gaps(fixed_view, moving_view, poses (m, 4, 4), vertices (m, k) of the moving body,
-// behind) -> (m,) the least gap along d from those vertices up to the fixed body at each
-// pose (a vertex lying on a face more than `behind` above the face does not count)
+// behind[, short_of (m,)]) -> (m,) the least gap along d from those vertices up to the
+// fixed body at each pose (a vertex lying on a face more than `behind` above the face does
+// not count); where short_of is given, a pose's search stops at the first gap below its
+// short_of (that gap is returned: the least is at most that)
 PyObject *vertex_gaps(PyObject *, PyObject *args) {
-    static const char usage[] = "vertex_gaps: poses (m, 4, 4) and vertices (m, k)";
+    static const char usage[] = "vertex_gaps: poses (m, 4, 4), vertices (m, k) and short_of (m,)";
     Sweep s;
-    Py_buffer poses, verts;
+    Py_buffer poses, verts, shorts;
     Py_ssize_t m, k;
     double behind;
-    if (!parse_indexed(args, s, poses, verts, 1, usage, m, k, behind)) return nullptr;
+    PyObject *so = nullptr;
+    if (!parse_indexed(args, s, poses, verts, 1, usage, m, k, behind, &so)) return nullptr;
+    bool have_shorts = so != nullptr && so != Py_None;
+    if (have_shorts && !get_buffer(so, &shorts, "d", 8, "short_of")) {
+        PyBuffer_Release(&poses); PyBuffer_Release(&verts);
+        return nullptr;
+    }
     const int64_t *v = static_cast<const int64_t *>(verts.buf);
     Py_ssize_t nv = static_cast<Py_ssize_t>(s.moving->body->vertices.size() / 3);
-    bool ok = true;
+    bool ok = !have_shorts || shorts.len == 8 * m;
     for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = v[i] >= 0 && v[i] < nv;
+    std::vector<double> short_of(m, -kInf);
+    if (have_shorts) {
+        if (ok) std::memcpy(short_of.data(), shorts.buf, m * 8);
+        PyBuffer_Release(&shorts);
+    }
     if (!ok || s.fixed->body->nodes.empty()) {
         PyBuffer_Release(&poses); PyBuffer_Release(&verts);
         if (!ok) {
@@ -837,11 +859,18 @@ PyObject *vertex_gaps(PyObject *, PyObject *args) {
     }
     std::vector<double> out(m, kInf);
     std::vector<int32_t> stack;
+    std::vector<int64_t> row(k);
     const double *p = static_cast<const double *>(poses.buf);
     for (Py_ssize_t i = 0; i < m; ++i) {
         s.place(p + 16 * i);
-        for (Py_ssize_t j = 0; j < k; ++j)
-            out[i] = std::min(out[i], vertex_gap(s, static_cast<int32_t>(v[i * k + j]), behind, stack));
+        // each vertex once (the triangles of a contact share most of theirs)
+        row.assign(v + i * k, v + (i + 1) * k);
+        std::sort(row.begin(), row.end());
+        row.erase(std::unique(row.begin(), row.end()), row.end());
+        for (int64_t vertex : row) {
+            out[i] = vertex_gap(s, static_cast<int32_t>(vertex), behind, out[i], stack);
+            if (out[i] < short_of[i]) break;
+        }
     }
     PyBuffer_Release(&poses); PyBuffer_Release(&verts);
     return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), m * 8);
@@ -849,13 +878,13 @@ PyObject *vertex_gaps(PyObject *, PyObject *args) {
 
 PyMethodDef module_methods[] = {
     {"vertex_gaps", vertex_gaps, METH_VARARGS,
-     "vertex_gaps(fixed_view, moving_view, poses, vertices, behind) -> least gap at each pose"},
+     "vertex_gaps(fixed_view, moving_view, poses, vertices, behind[, short_of]) -> least gap at each pose"},
     {"witnesses", witnesses, METH_VARARGS,
      "witnesses(fixed_view, moving_view, poses, pairs, behind) -> least gap of each pair at its pose"},
     {"travels", travels, METH_VARARGS,
-     "travels(fixed_view, moving_view, poses, behind, window, limit) -> (travels, buried, pairs)"},
+     "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,
-     "contacts(fixed_view, moving_view, pose, behind, window, limit) -> (travel, buried, features, pairs)"},
+     "contacts(fixed_view, moving_view, pose, behind, window, limit[, short_of]) -> (travel, buried, features, pairs)"},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_sweep",

@@ -185,13 +185,15 @@ class SweepPair:
             np.frombuffer(buried, dtype=np.int8).astype(bool)
 
     def touch(self, pose: Pose, behind: float = 0.0, window: float = 0.0,
-              limit: float = math.inf) -> Touch:
+              limit: float = math.inf, short_of: float = -math.inf) -> Touch:
         """The travel from `pose` (as `travels`) and the features closing within `window`
-        beyond it."""
+        beyond it; the search stops as soon as the travel is known to be below `short_of`
+        (the travel returned is then a gap below it, the travel at most that, and the
+        features are partial)."""
         pose = np.ascontiguousarray(pose, dtype=np.float64)
         travel, buried, raw, pairs = _sweep.contacts(
             self._fixed_view, self._moving_view(pose), pose, float(behind), float(window),
-            _finite(limit))
+            _finite(limit), float(short_of))
         self.queries += 1
         self.pairs += pairs
         f = np.frombuffer(raw, dtype=_FEATURE)
@@ -213,17 +215,20 @@ class SweepPair:
                                float(behind))
         return np.frombuffer(raw, dtype=np.float64).reshape(pairs.shape[:2]).copy()
 
-    def vertex_gaps(self, poses: Floats, vertices: Ints, behind: float) -> Floats:
+    def vertex_gaps(self, poses: Floats, vertices: Ints, behind: float,
+                    short_of: Floats | None = None) -> Floats:
         """(m,) the least gap along Δ from the moving body's `vertices` (m, k) (indices) up
         to a face of the fixed body, with the body at each of `poses` (m, 4, 4); a vertex
         more than `behind` above a face does not count it. A vertex's gap is a contact (a
-        vertex on a face), so the travel from a pose is no longer than it."""
+        vertex on a face), so the travel from a pose is no longer than it. With `short_of`
+        (m,), a pose's search stops at the first gap below its own: that gap is returned."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         vertices = np.ascontiguousarray(vertices, dtype=np.int64)
         if len(poses) == 0 or vertices.shape[1] == 0:
             return np.full(len(poses), math.inf)
+        shorts = None if short_of is None else np.ascontiguousarray(short_of, dtype=np.float64)
         raw = _sweep.vertex_gaps(self._fixed_view, self._moving_view(poses[0]), poses,
-                                 vertices, float(behind))
+                                 vertices, float(behind), shorts)
         return np.frombuffer(raw, dtype=np.float64).copy()
 
 

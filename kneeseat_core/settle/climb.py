@@ -72,6 +72,14 @@ class _Place:
     models: dict[tuple[float, float], Model] = field(default_factory=dict)
 
 
+class _Short:
+    """A target measured short of the travel its gain needs (`_Climb.arrive`): it cannot
+    gain, and its search stopped as soon as that was known."""
+
+
+_SHORT = _Short()
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class _Witnesses:
     """Every feature within a wide window of a place (the pool the witnesses of a move are
@@ -105,25 +113,30 @@ class _Climb:
         self.proof_s = 0.0
 
     # ---- measuring -------------------------------------------------------------------
-    def arrive(self, target: Pose, expected: float = 0.0, window_res: float | None = None
-               ) -> _Place | None:
+    def arrive(self, target: Pose, expected: float = 0.0, window_res: float | None = None,
+               short_of: float = -math.inf) -> _Place | _Short | None:
         """The lateral pose `target` moved along Δ to contact: the travel measured exactly
         from it lowered by enough that the lowered pose is free (`expected`: the travel
         expected there, negative where `target` may be in collision), with the features
         within `window_res` resolutions (default: the tuning's window); None: no contact
-        along Δ (the body slid off the fixed body)."""
+        along Δ (the body slid off the fixed body); `_SHORT`: the travel is less than
+        `short_of` (the search stops as soon as a gap says so)."""
         s, sweep = self.search, self.sweep
         window = (self.tuning.window_res if window_res is None else window_res) \
             * s.params.resolution_m
         behind = max(0.0, -2.0 * expected) + self.standoff
         limit = s.travel_limit(target)
         while True:
-            touch = sweep.touch(target, behind, window, limit + behind)
+            touch = sweep.touch(target, behind, window, limit + behind, short_of)
             if not touch.buried:
                 break
+            if -behind < short_of:      # the travel is below -behind
+                return _SHORT
             behind *= 4.0
             if behind > 2.0 * limit:
                 return None
+        if touch.travel < short_of:
+            return _SHORT
         if not math.isfinite(touch.travel):
             return None
         rise = touch.travel - self.standoff
@@ -229,7 +242,8 @@ class _Climb:
         assert self.pool is not None
         if np.max(np.abs(place.state - self.pool.state)) > \
                 self.tuning.pool_reach_moves * self.finest:
-            self._pool(self.arrive(place.pose, 0.0, self.tuning.pool_window_res) or place)
+            wide = self.arrive(place.pose, 0.0, self.tuning.pool_window_res)
+            self._pool(wide if isinstance(wide, _Place) else place)
         outside = None if s.params.envelope_holds else s.beyond_envelope(place.pose)
         if outside:
             return (Status.ENVELOPE, outside)
@@ -292,7 +306,8 @@ class _Climb:
         of the travel it needs: a pair of triangles from the witnesses' pool that the pool
         says close first after it (`SweepPair.witnesses`), or a vertex of their moving
         triangles onto whatever face of the fixed body it meets there
-        (`SweepPair.vertex_gaps`). The rest are measured in turn."""
+        (`SweepPair.vertex_gaps`). The rest are measured in turn, each search stopping as
+        soon as a contact short of the travel the move needs is found."""
         assert self.here is not None and self.pool is not None
         s, t, sweep = self.search, self.tuning, self.sweep
         if len(moves) == 0:
@@ -323,14 +338,15 @@ class _Climb:
                 # times l: a vertex that far above a face is through it
                 vertices = s.pair.moving.faces[pairs[left, :, 0]].reshape(int(left.sum()), -1)
                 deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
-                reached = sweep.vertex_gaps(targets[open_][left], vertices, deepest)
+                reached = sweep.vertex_gaps(targets[open_][left], vertices, deepest,
+                                            needed[open_][left])
                 refuted[left] = reached < needed[open_][left]
             open_[open_] = ~refuted
         for i in np.flatnonzero(open_):
-            place = self.arrive(targets[i], float(needed[i]))
+            place = self.arrive(targets[i], float(needed[i]), short_of=float(needed[i]))
             if place is None:
                 return (Status.LOST, LOST_CONTACT)
-            if place.value - here.value >= gain:
+            if isinstance(place, _Place) and place.value - here.value >= gain:
                 return place
         return None
 
@@ -344,7 +360,7 @@ def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
     assert search.sweep is not None
     climb = _Climb(search, search.sweep, tuning, tissue)
     first = climb.arrive(start, 0.0, tuning.pool_window_res)
-    if first is None:
+    if not isinstance(first, _Place):
         raise NoContactError(search.travel_limit(start))
     climb.settle_in(first)
     end: End | None = climb.pulled()
