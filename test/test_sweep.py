@@ -223,7 +223,10 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
     probes = np.array(lateral_poses(free, push, centre, seed, 24, 3e-4, 0.5))
     lifts = np.random.default_rng(seed).choice([2.5e-6, 2.5e-5, 1e-4], len(probes))
     pairs = np.broadcast_to(touch.faces, (len(probes),) + touch.faces.shape)
-    gaps = sweep.witnesses(probes, pairs, 0.0).min(axis=1)
+    gaps = sweep.witnesses(probes, pairs, 0.0)
+    stopped = sweep.witnesses(probes, pairs, 0.0, lifts)
+    assert np.array_equal(stopped < lifts, gaps < lifts)
+    assert np.array_equal(stopped[gaps >= lifts], gaps[gaps >= lifts])
     vertices = np.broadcast_to(np.unique(moving.faces[touch.faces[:, 0]]),
                                (len(probes), len(np.unique(moving.faces[touch.faces[:, 0]]))))
     reached = sweep.vertex_gaps(probes, vertices, 1e-3)
@@ -289,3 +292,11 @@ def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
         _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 99]]]), 0.0)
     with pytest.raises(ValueError):
         _sweep.vertex_gaps(fixed, moving, np.eye(4)[None], np.array([[99]]), 0.0)
+    with pytest.raises(ValueError):
+        _sweep.vertex_gaps(fixed, moving, np.eye(4)[None], np.array([[0]]), 0.0, np.zeros(2))
+    with pytest.raises(ValueError):
+        _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 0]]]), 0.0, np.zeros(3))
+    with pytest.raises(TypeError):
+        _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 0]]]), 0.0, 'x')
+    with pytest.raises(ValueError):
+        _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, math.nan)

@@ -679,6 +679,20 @@ bool parse_indexed(PyObject *args, Sweep &s, Py_buffer &poses, Py_buffer &indice
     return false;
 }
 
+// An optional short_of argument (None or absent: -inf for every pose), (m,) float64; false
+// with the error set where it has another shape.
+bool take_short_of(PyObject *so, Py_ssize_t m, std::vector<double> &out) {
+    out.assign(m, -kInf);
+    if (so == nullptr || so == Py_None) return true;
+    Py_buffer b;
+    if (!get_buffer(so, &b, "d", 8, "short_of")) return false;
+    bool ok = b.len == 8 * m;
+    if (ok) std::memcpy(out.data(), b.buf, m * 8);
+    else PyErr_SetString(PyExc_ValueError, "short_of: one number per pose");
+    PyBuffer_Release(&b);
+    return ok;
+}
+
 bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window) {
     PyObject *fo, *mo, *po;
     if (!PyArg_ParseTuple(args, "O!O!Oddd|d", &ViewType, &fo, &ViewType, &mo, &po, &s.behind, &window,
@@ -750,40 +764,44 @@ PyObject *contacts(PyObject *, PyObject *args) {
 }
 
 // witnesses(fixed_view, moving_view, poses (m, 4, 4), pairs (m, k, 2) of (moving face,
-// fixed face) as given, behind) -> (m, k) the least gap of each pair at its pose (inf: the
-// shadows do not overlap or the pair lies wholly behind the pose lowered by `behind`)
+// fixed face), behind[, short_of (m,)]) -> (m,) the least gap of a pose's pairs at that
+// pose (a pair counts where the shadows overlap and it does not lie wholly behind the pose
+// lowered by `behind`; inf: none does); where short_of is given, a pose's pairs are asked
+// in turn until one's gap is below its short_of (that gap is returned)
 PyObject *witnesses(PyObject *, PyObject *args) {
-    static const char usage[] = "witnesses: poses (m, 4, 4) and pairs (m, k, 2) of face indices";
+    static const char usage[] = "witnesses: poses (m, 4, 4), pairs (m, k, 2) of face indices and short_of (m,)";
     Sweep s;
     Py_buffer poses, pairs;
     Py_ssize_t m, k;
     double behind;
-    if (!parse_indexed(args, s, poses, pairs, 2, usage, m, k, behind)) return nullptr;
+    PyObject *so = nullptr;
+    if (!parse_indexed(args, s, poses, pairs, 2, usage, m, k, behind, &so)) return nullptr;
+    std::vector<double> short_of;
+    bool ok = take_short_of(so, m, short_of);
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
     const int64_t *q = static_cast<const int64_t *>(pairs.buf);
-    bool ok = true;
     Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
     for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = q[2 * i] >= 0 && q[2 * i] < nm && q[2 * i + 1] >= 0 && q[2 * i + 1] < nf;
     if (!ok) {
         PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
-        PyErr_SetString(PyExc_ValueError, usage);
+        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, usage);
         return nullptr;
     }
-    std::vector<double> out(m * k);
+    std::vector<double> out(m, kInf);
     const double *p = static_cast<const double *>(poses.buf);
     for (Py_ssize_t i = 0; i < m; ++i) {
         s.place(p + 16 * i);
-        for (Py_ssize_t j = 0; j < k; ++j) {
+        for (Py_ssize_t j = 0; j < k && !(out[i] < short_of[i]); ++j) {
             const int64_t *pair = q + 2 * (i * k + j);
             const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
             const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
             const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
             PairGap g(A, B);
-            out[i * k + j] = g.kind < 0 || g.most < -behind ? kInf : g.least;
+            if (g.kind >= 0 && g.most >= -behind) out[i] = std::min(out[i], g.least);
         }
     }
     PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
-    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), static_cast<Py_ssize_t>(out.size() * 8));
+    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), m * 8);
 }
 
 // The least of `best` and the gaps along d from the moving body's vertex `i` (placed by
@@ -829,29 +847,20 @@ double vertex_gap(Sweep &s, int32_t i, double behind, double best, std::vector<i
 PyObject *vertex_gaps(PyObject *, PyObject *args) {
     static const char usage[] = "vertex_gaps: poses (m, 4, 4), vertices (m, k) and short_of (m,)";
     Sweep s;
-    Py_buffer poses, verts, shorts;
+    Py_buffer poses, verts;
     Py_ssize_t m, k;
     double behind;
     PyObject *so = nullptr;
     if (!parse_indexed(args, s, poses, verts, 1, usage, m, k, behind, &so)) return nullptr;
-    bool have_shorts = so != nullptr && so != Py_None;
-    if (have_shorts && !get_buffer(so, &shorts, "d", 8, "short_of")) {
-        PyBuffer_Release(&poses); PyBuffer_Release(&verts);
-        return nullptr;
-    }
+    std::vector<double> short_of;
+    bool ok = take_short_of(so, m, short_of);
     const int64_t *v = static_cast<const int64_t *>(verts.buf);
     Py_ssize_t nv = static_cast<Py_ssize_t>(s.moving->body->vertices.size() / 3);
-    bool ok = !have_shorts || shorts.len == 8 * m;
     for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = v[i] >= 0 && v[i] < nv;
-    std::vector<double> short_of(m, -kInf);
-    if (have_shorts) {
-        if (ok) std::memcpy(short_of.data(), shorts.buf, m * 8);
-        PyBuffer_Release(&shorts);
-    }
     if (!ok || s.fixed->body->nodes.empty()) {
         PyBuffer_Release(&poses); PyBuffer_Release(&verts);
         if (!ok) {
-            PyErr_SetString(PyExc_ValueError, usage);
+            if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, usage);
             return nullptr;
         }
         std::vector<double> none(m, kInf);
@@ -880,7 +889,7 @@ PyMethodDef module_methods[] = {
     {"vertex_gaps", vertex_gaps, METH_VARARGS,
      "vertex_gaps(fixed_view, moving_view, poses, vertices, behind[, short_of]) -> least gap at each pose"},
     {"witnesses", witnesses, METH_VARARGS,
-     "witnesses(fixed_view, moving_view, poses, pairs, behind) -> least gap of each pair at its pose"},
+     "witnesses(fixed_view, moving_view, poses, pairs, behind[, short_of]) -> least gap of a pose's pairs"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

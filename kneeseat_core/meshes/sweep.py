@@ -201,19 +201,22 @@ class SweepPair:
                      f['point'].copy(), f['room'].copy(), f['kind'].copy(),
                      np.column_stack([f['moving_face'], f['fixed_face']]))
 
-    def witnesses(self, poses: Floats, pairs: Ints, behind: float = 0.0) -> Floats:
-        """(m, k) the least gap along Δ of each pair of triangles `pairs` (m, k, 2) (moving
-        face, fixed face) with the body at its pose of `poses` (m, 4, 4): inf where their
-        shadows do not overlap or the pair lies wholly behind the pose lowered by `behind`.
-        The travel from a pose is no longer than any of its pairs' gaps: a gap short of
-        what a probe needs refutes the probe without a search."""
+    def witnesses(self, poses: Floats, pairs: Ints, behind: float = 0.0,
+                  short_of: Floats | None = None) -> Floats:
+        """(m,) the least gap along Δ of the pairs of triangles `pairs` (m, k, 2) (moving
+        face, fixed face) with the body at each of `poses` (m, 4, 4), over the pairs whose
+        shadows overlap and that do not lie wholly behind the pose lowered by `behind` (inf:
+        none). The travel from a pose is no longer than any of its pairs' gaps: a gap short
+        of what a probe needs refutes the probe without a search. With `short_of` (m,), a
+        pose's pairs are asked in turn until a gap is below its own: that gap is returned."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         pairs = np.ascontiguousarray(pairs, dtype=np.int64)
         if len(poses) == 0 or pairs.shape[1] == 0:
-            return np.full(pairs.shape[:2], math.inf)
+            return np.full(len(poses), math.inf)
+        shorts = None if short_of is None else np.ascontiguousarray(short_of, dtype=np.float64)
         raw = _sweep.witnesses(self._fixed_view, self._moving_view(poses[0]), poses, pairs,
-                               float(behind))
-        return np.frombuffer(raw, dtype=np.float64).reshape(pairs.shape[:2]).copy()
+                               float(behind), shorts)
+        return np.frombuffer(raw, dtype=np.float64).copy()
 
     def vertex_gaps(self, poses: Floats, vertices: Ints, behind: float,
                     short_of: Floats | None = None) -> Floats:

@@ -330,7 +330,7 @@ class _Climb:
         if len(pool.gaps) and open_.any():
             shifted = moves[open_] + (here.state - self.pool.state)
             pairs = pool.witnesses(shifted, t.witnesses)
-            refuted = np.min(sweep.witnesses(targets[open_], pairs, self.standoff), axis=1) \
+            refuted = sweep.witnesses(targets[open_], pairs, self.standoff, needed[open_]) \
                 < needed[open_]
             left = ~refuted
             if left.any():
