@@ -20,7 +20,7 @@ import trimesh
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.meshes import CollisionPair, load_mesh, load_meshes, RigidBody, SweepPair
 from kneeseat_core.meshes import _sweep
-from kneeseat_core.meshes.sweep import facing
+from kneeseat_core.meshes.sweep import facing, sweep_body
 import settle_cases as sc
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
@@ -300,3 +300,27 @@ def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
         _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 0]]]), 0.0, 'x')
     with pytest.raises(ValueError):
         _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, math.nan)
+
+
+def test_a_pose_measures_the_same_whatever_direction_was_asked_before() -> None:
+    """A worker settles cell after cell, and a body's view is kept per direction rounded to
+    1e-12: a view first built for another direction of the same rounding must measure a
+    pose bit for bit as a view built for the pose itself would (else a table differs from
+    run to run with the order in which chains reach the workers)."""
+    var = sc.variant('sphere_bowl', 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    pose = backed(CollisionPair(var.fixed, var.moving), var.start, push)
+    direction = pose[:3, :3].T @ push
+    centre = np.round(direction / 1e-12) * 1e-12
+    # the same rounding, on the other side of its centre (a different direction)
+    other = centre - 0.4e-12 * np.where(direction >= centre, 1.0, -1.0)
+    assert not np.array_equal(other, direction)
+
+    def measured(first: np.ndarray) -> tuple[float, np.ndarray]:
+        fixed, moving = (RigidBody.from_mesh(b.mesh.copy()) for b in (var.fixed, var.moving))
+        sweep_body(moving).view(first, 1)
+        touch = SweepPair(fixed, moving, push).touch(pose, 1e-3, 1e-3)
+        return touch.travel, touch.gaps
+
+    own, after_other = measured(direction), measured(other)
+    assert own[0] == after_other[0] and np.array_equal(own[1], after_other[1])

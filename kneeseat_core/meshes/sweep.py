@@ -38,7 +38,11 @@ from .collision import RigidBody
 __all__ = ['SweepBody', 'SweepPair', 'Touch', 'sweep_body', 'facing']
 
 # A view of a body is kept per direction, the direction rounded to this (rad): the moving
-# body's direction in its own frame stays put while it spins about Δ, up to rounding.
+# body's direction in its own frame stays put while it spins about Δ, up to rounding. The
+# view looks along the rounded direction itself, so that what a pose measures does not
+# depend on which direction of the same rounding happened to be asked first in the process
+# (a worker's history: the tables would differ from run to run in the last bits, and a
+# climb can turn on those).
 _SAME_DIRECTION = 1e-12
 _VIEWS_KEPT = 8
 
@@ -111,12 +115,14 @@ class SweepBody:
     def view(self, direction: Floats, side: int) -> _sweep.View:
         """The body seen along the unit `direction` (its own frame): `side` +1 for the
         moving body (its faces facing +direction take part), -1 for the fixed body."""
-        key = (side, *(int(round(float(c) / _SAME_DIRECTION)) for c in direction))
+        rounded = tuple(int(round(float(c) / _SAME_DIRECTION)) for c in direction)
+        key = (side, *rounded)
         found = self._views.get(key)   # type: ignore[arg-type]
         if found is None:
             if len(self._views) >= _VIEWS_KEPT:
                 del self._views[next(iter(self._views))]
-            unit = np.ascontiguousarray(direction / np.linalg.norm(direction), dtype=np.float64)
+            along = np.array(rounded, dtype=np.float64) * _SAME_DIRECTION
+            unit = np.ascontiguousarray(along / np.linalg.norm(along), dtype=np.float64)
             found = self._views[key] = _sweep.View(self.native, unit, side)   # type: ignore[index]
         return found
 
