@@ -90,8 +90,10 @@ def assert_same_table(got: PoseTable, want: PoseTable) -> None:
     np.testing.assert_array_equal(got.flexion_rad, want.flexion_rad)
     np.testing.assert_array_equal(got.varus_rad, want.varus_rad)
     assert got.position_m.shape == want.position_m.shape
-    np.testing.assert_allclose(got.position_m, want.position_m, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(got.orientation_xyzw, want.orientation_xyzw, rtol=0, atol=1e-9)
+    # bit for bit: what a cell settles to does not depend on which process settled the
+    # cells before it
+    np.testing.assert_array_equal(got.position_m, want.position_m)
+    np.testing.assert_array_equal(got.orientation_xyzw, want.orientation_xyzw)
     np.testing.assert_array_equal(got.converged, want.converged)
     np.testing.assert_array_equal(got.iterations, want.iterations)
 
