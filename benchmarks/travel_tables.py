@@ -1,12 +1,13 @@
 """Two tables of one knee on one grid: where they differ, and whether the second is at rest there.
 
-Run: `python benchmarks/travel_tables.py REFERENCE.npz JUDGED.npz [--workers 2] [--limit N]`
-(say the same config built by an earlier release and by this one). Prints, per body, how
-many cells differ by more than the resolution (the frame origin's displacement, or the turn
-times the body's reach), the largest difference, and then the referee's verdicts (`kneeseat
-verify`'s judge: python-fcl and Nelder-Mead, nothing of the settle) on those cells of the
-judged table: how many are at rest and the largest gain. Also the build figures both
-tables recorded.
+Run: `python benchmarks/travel_tables.py REFERENCE.npz JUDGED.npz [--workers 2]
+[--limit N] [--mesh-dir DIR]` (say the same config built by an earlier release and by this
+one; DIR: the folder that holds the tables' meshes when they are no longer where the tables
+were built). Prints, per body, how many cells differ by more than the resolution (the frame
+origin's displacement, or the turn times the body's reach), the largest difference, and
+then the referee's verdicts (`kneeseat verify`'s judge: python-fcl and Nelder-Mead, nothing
+of the settle) on those cells of the judged table: how many are at rest and the largest
+gain. Also the build figures both tables recorded.
 """
 from __future__ import annotations
 
@@ -19,25 +20,28 @@ import numpy as np
 from kneeseat_core.geometry import matrix_from_quat
 from kneeseat_core.knee import config_from_metadata
 from kneeseat_core.meshes import load_meshes
+from kneeseat_core.errors import KneeseatError, MeshError
 from kneeseat_core.referee import verify_table
+from kneeseat_core.referee.cells import mesh_file
 from kneeseat_core.sweep import executor_for, queries_per_cell
 from kneeseat_core.table import PoseTable, read_table
 from machine import describe_machine
 
 
-def reach_m(table: PoseTable, body: int) -> float:
-    """The body's farthest vertex from its centroid (m), from its meshes."""
+def reach_m(table: PoseTable, body: int, mesh_dir: Path | None) -> float:
+    """The body's farthest vertex from its centroid (m), from its meshes (in `mesh_dir`
+    when given)."""
     config = config_from_metadata(table.metadata)
     spec = config.bodies[body]
-    mesh = load_meshes([str(p) for p in spec.meshes], config.units, quiet=True)
+    where = None if mesh_dir is None else str(mesh_dir)
+    mesh = load_meshes([mesh_file(p, where) for p in spec.meshes], config.units, quiet=True)
     return float(np.max(np.linalg.norm(mesh.vertices - mesh.centroid, axis=1)))
 
 
-def differing(a: PoseTable, b: PoseTable, body: int, resolution: float) -> \
+def differing(a: PoseTable, b: PoseTable, body: int, resolution: float, reach: float) -> \
         tuple[list[tuple[int, int, int]], float, float]:
     """Cells of `body` converged in both and apart by more than `resolution` (as a
-    displacement or an arc at the body's reach); the largest displacement and arc (m)."""
-    reach = reach_m(a, body)
+    displacement or an arc at the body's `reach`); the largest displacement and arc (m)."""
     cells, worst_d, worst_arc = [], 0.0, 0.0
     nf, nv = a.converged.shape[1:]
     for i in range(nf):
@@ -63,7 +67,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--limit', type=int, default=None,
                         help='judge at most this many differing cells, evenly spread over '
                         'them (all by default)')
+    parser.add_argument('--mesh-dir', type=Path, default=None,
+                        help="the folder that holds the tables' meshes (default: where the "
+                        'tables were built from)')
     args = parser.parse_args(argv)
+    try:
+        return compare(args)
+    except MeshError as exc:
+        print(f'travel_tables: {exc} (or pass --mesh-dir DIR, the folder the meshes are in '
+              'now)', file=sys.stderr)
+        return 2
+    except KneeseatError as exc:
+        print(f'travel_tables: {exc}', file=sys.stderr)
+        return 2
+
+
+def compare(args: argparse.Namespace) -> int:
+    """Print where the two tables differ and the referee's verdicts there."""
     a, b = read_table(args.reference), read_table(args.judged)
     if a.position_m.shape != b.position_m.shape or a.bodies != b.bodies:
         print('travel_tables: the two tables have different grids or bodies', file=sys.stderr)
@@ -76,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
               f'{queries_per_cell(s)}')
     judge: list[tuple[int, int, int]] = []
     for body, name in enumerate(a.bodies):
-        cells, worst_d, worst_arc = differing(a, b, body, resolution)
+        cells, worst_d, worst_arc = differing(a, b, body, resolution,
+                                              reach_m(a, body, args.mesh_dir))
         print(f'{name}: {len(cells)} of {int(a.converged[body].sum())} cells differ by more '
               f'than the resolution ({resolution * 1e3:g} mm); largest {worst_d * 1e3:.3f} mm, '
               f'arc {worst_arc * 1e3:.3f} mm')
@@ -88,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     executor, close = executor_for(args.workers, None)
     try:
-        verdicts = list(verify_table(args.judged, judge, executor, extent=False))
+        verdicts = list(verify_table(args.judged, judge, executor, mesh_dir=args.mesh_dir,
+                                     extent=False))
     finally:
         close()
     gains = [v.gain_m for v in verdicts if v.converged]
