@@ -62,12 +62,13 @@ End = tuple[int, str]    # (Status code, reason)
 class _Place:
     """A pose at contact (free, a standoff short of touching along Δ): what it is worth,
     its lateral state (slide e1, slide e2, arc from the anchor) and the features closing
-    within the window beyond it (gaps from the pose itself)."""
+    within the window beyond it (gaps from the pose itself); `wide`: within the pool's."""
 
     pose: Pose
     value: float
     state: Floats
     touch: Touch
+    wide: bool
     # the models of the travel about it, by (within, room) (`_Climb.model`)
     models: dict[tuple[float, float], Model] = field(default_factory=dict)
 
@@ -143,7 +144,8 @@ class _Climb:
         pose = translated(target, rise * s.push)
         shifted = Touch(touch.travel, False, touch.gaps - rise, touch.normals,
                         touch.points + rise * s.push, touch.rooms, touch.kinds, touch.faces)
-        return _Place(pose, self.objective.value(pose), self.state_of(pose), shifted)
+        return _Place(pose, self.objective.value(pose), self.state_of(pose), shifted,
+                      window_res is not None and window_res >= self.tuning.pool_window_res)
 
     def state_of(self, pose: Pose) -> Floats:
         """(3,) the lateral state of `pose`: slides along e1, e2 and the arc of its spin,
@@ -176,6 +178,14 @@ class _Climb:
 
     def _pool(self, place: _Place) -> None:
         self.pool = _Witnesses(self.model(place), place.state)
+
+    def _beyond_pool(self, state: Floats) -> bool:
+        """Whether the pool, taken where it was, is too far from the lateral state `state`
+        to name the pairs that close first there: a place there becomes the pool when the
+        climb moves to it, so it is measured with the pool's window."""
+        assert self.pool is not None
+        reach = self.tuning.pool_reach_moves * self.finest
+        return bool(np.max(np.abs(state - self.pool.state)) > reach)
 
     # ---- the steps -------------------------------------------------------------------
     def step(self) -> End | None | bool:
@@ -239,10 +249,9 @@ class _Climb:
         s = self.search
         self.here = place
         self.failed = set()
-        assert self.pool is not None
-        if np.max(np.abs(place.state - self.pool.state)) > \
-                self.tuning.pool_reach_moves * self.finest:
-            wide = self.arrive(place.pose, 0.0, self.tuning.pool_window_res)
+        if self._beyond_pool(place.state):
+            wide = place if place.wide else self.arrive(place.pose, 0.0,
+                                                        self.tuning.pool_window_res)
             self._pool(wide if isinstance(wide, _Place) else place)
         outside = None if s.params.envelope_holds else s.beyond_envelope(place.pose)
         if outside:
@@ -343,7 +352,8 @@ class _Climb:
                 refuted[left] = reached < needed[open_][left]
             open_[open_] = ~refuted
         for i in np.flatnonzero(open_):
-            place = self.arrive(targets[i], float(needed[i]), short_of=float(needed[i]))
+            window = t.pool_window_res if self._beyond_pool(self.state_of(targets[i])) else None
+            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]))
             if place is None:
                 return (Status.LOST, LOST_CONTACT)
             if isinstance(place, _Place) and place.value - here.value >= gain:
