@@ -7,7 +7,7 @@
 // flat: over the overlap of their shadows the gap along d between them is affine, so its
 // least value lies at a corner of that overlap, and every corner is one of those features:
 // a vertex of either triangle inside the other's shadow, or two edges whose shadows cross.
-// `TrianglePair` evaluates all fifteen, exactly, in double precision. The same corners give
+// `PairGap` evaluates all fifteen, exactly, in double precision. The same corners give
 // the largest gap: a pair whose least and largest gaps have opposite signs crosses already.
 //
 // Which pairs to evaluate comes from a bounding volume hierarchy over each body (built once,
@@ -16,8 +16,9 @@
 // over it: every point of its triangles lies between two offsets of that plane. Two
 // conforming surfaces (a knee's bearing surfaces) have nearly parallel planes, so the gap
 // between two nodes is bounded within the nodes' curvature, not within their extent along d
-// as axis-aligned boxes would be. The pairs of nodes are visited lowest bound first, so the
-// search stops once no pair left can come closer than the best contact found.
+// as axis-aligned boxes would be. The pairs of nodes are opened depth first, the one with the
+// lower bound first, and a pair whose bound lies beyond the best contact found (and the
+// window past it) is never opened.
 //
 // Only the triangles facing the other body can take part in a first touch between closed
 // bodies (a ray from outside enters through a front face): a View keeps those (`side`), and
@@ -453,16 +454,15 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     double blow = std::min(std::min(B[0][2], B[1][2]), B[2][2]);
     double bhigh = std::max(std::max(B[0][2], B[1][2]), B[2][2]);
     if (blow - ahigh > cutoff() || bhigh - alow < -behind) return;
-    PairGap g(A, B);
-    double least = g.least, most = g.most, at = g.at, room = g.room;
-    int kind = g.kind, i_at = g.i_at, j_at = g.j_at;
-    if (kind < 0 || most < -behind) return;      // shadows apart, or wholly behind
-    if (least <= -behind) { buried = true; return; }
-    if (least > cutoff()) return;
-    if (least < best) best = least;
+    const PairGap g(A, B);
+    if (g.kind < 0 || g.most < -behind) return;      // shadows apart, or wholly behind
+    if (g.least <= -behind) { buried = true; return; }
+    if (g.least > cutoff()) return;
+    if (g.least < best) best = g.least;
     if (!want_features) return;
+    const int kind = g.kind, i_at = g.i_at, j_at = g.j_at;
     Feature f;
-    f.gap = least;
+    f.gap = g.least;
     f.kind = kind;
     f.moving_face = mb.face_id[ta];
     f.fixed_face = fb.face_id[tb];
@@ -475,26 +475,26 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     double n[3];
     if (kind == 0) {
         for (int k = 0; k < 3; ++k) { n[k] = fb.normals[3 * tb + k]; f.point[k] = world[i_at][k]; }
-        room = edge_distance(B[0], B[1], B[2], A[i_at][0], A[i_at][1]);
+        f.room = edge_distance(B[0], B[1], B[2], A[i_at][0], A[i_at][1]);
     } else if (kind == 1) {
-        room = edge_distance(A[0], A[1], A[2], B[j_at][0], B[j_at][1]);
+        f.room = edge_distance(A[0], A[1], A[2], B[j_at][0], B[j_at][1]);
         const double *q = &fb.vertices[3 * ff[j_at]], *m = &mb.normals[3 * ta];
         for (int k = 0; k < 3; ++k) {
             n[k] = R[3 * k] * m[0] + R[3 * k + 1] * m[1] + R[3 * k + 2] * m[2];
-            f.point[k] = q[k] - least * d[k];
+            f.point[k] = q[k] - g.least * d[k];
         }
     } else {
+        f.room = g.room;
         const double *a0 = world[i_at], *a1 = world[(i_at + 1) % 3];
         const double *b0 = &fb.vertices[3 * ff[j_at]], *b1 = &fb.vertices[3 * ff[(j_at + 1) % 3]];
         double ea[3], eb[3];
-        for (int k = 0; k < 3; ++k) { ea[k] = a1[k] - a0[k]; eb[k] = b1[k] - b0[k]; f.point[k] = a0[k] + at * ea[k]; }
+        for (int k = 0; k < 3; ++k) { ea[k] = a1[k] - a0[k]; eb[k] = b1[k] - b0[k]; f.point[k] = a0[k] + g.at * ea[k]; }
         n[0] = ea[1] * eb[2] - ea[2] * eb[1];
         n[1] = ea[2] * eb[0] - ea[0] * eb[2];
         n[2] = ea[0] * eb[1] - ea[1] * eb[0];
         double length = std::sqrt(dot3(n, n));
         for (int k = 0; k < 3; ++k) n[k] = length > 0.0 ? n[k] / length : 0.0;
     }
-    f.room = room;
     double sign = dot3(n, d) >= 0.0 ? 1.0 : -1.0;
     for (int k = 0; k < 3; ++k) f.normal[k] = sign * n[k];
     features.push_back(f);
@@ -658,27 +658,6 @@ bool take_views(PyObject *fo, PyObject *mo, Sweep &s) {
     return false;
 }
 
-// The arguments of witnesses and vertex_gaps: (fixed_view, moving_view, poses (m, 4, 4),
-// indices (m, k, width) of int64, behind[, extra] (only where `extra` is given)). On success both buffers are held and m, k set;
-// on failure nothing is held and the error is set (`usage` names the shapes).
-bool parse_indexed(PyObject *args, Sweep &s, Py_buffer &poses, Py_buffer &indices, Py_ssize_t width,
-                   const char *usage, Py_ssize_t &m, Py_ssize_t &k, double &behind,
-                   PyObject **extra = nullptr) {
-    PyObject *fo, *mo, *po, *io;
-    if (extra ? !PyArg_ParseTuple(args, "O!O!OOd|O", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind, extra)
-              : !PyArg_ParseTuple(args, "O!O!OOd", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind))
-        return false;
-    if (!take_views(fo, mo, s)) return false;
-    if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
-    if (!get_buffer(io, &indices, "q", 8, "indices")) { PyBuffer_Release(&poses); return false; }
-    m = poses.len / 128;
-    k = m > 0 ? indices.len / (8 * width * m) : 0;
-    if (poses.len % 128 == 0 && indices.len == 8 * width * m * k) return true;
-    PyBuffer_Release(&poses); PyBuffer_Release(&indices);
-    PyErr_SetString(PyExc_ValueError, usage);
-    return false;
-}
-
 // An optional short_of argument (None or absent: -inf for every pose), (m,) float64; false
 // with the error set where it has another shape.
 bool take_short_of(PyObject *so, Py_ssize_t m, std::vector<double> &out) {
@@ -691,6 +670,30 @@ bool take_short_of(PyObject *so, Py_ssize_t m, std::vector<double> &out) {
     else PyErr_SetString(PyExc_ValueError, "short_of: one number per pose");
     PyBuffer_Release(&b);
     return ok;
+}
+
+// The arguments of witnesses and vertex_gaps: (fixed_view, moving_view, poses (m, 4, 4),
+// indices (m, k, width) of int64, behind[, short_of (m,)]). On success both buffers are
+// held and m, k and short_of set; on failure nothing is held and the error is set (`usage`
+// names the shapes).
+bool parse_indexed(PyObject *args, Sweep &s, Py_buffer &poses, Py_buffer &indices, Py_ssize_t width,
+                   const char *usage, Py_ssize_t &m, Py_ssize_t &k, double &behind,
+                   std::vector<double> &short_of) {
+    PyObject *fo, *mo, *po, *io, *so = nullptr;
+    if (!PyArg_ParseTuple(args, "O!O!OOd|O", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind, &so))
+        return false;
+    if (!take_views(fo, mo, s)) return false;
+    if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
+    if (!get_buffer(io, &indices, "q", 8, "indices")) { PyBuffer_Release(&poses); return false; }
+    m = poses.len / 128;
+    k = m > 0 ? indices.len / (8 * width * m) : 0;
+    if (poses.len % 128 != 0 || indices.len != 8 * width * m * k) {
+        PyErr_SetString(PyExc_ValueError, usage);
+    } else if (take_short_of(so, m, short_of)) {
+        return true;
+    }
+    PyBuffer_Release(&poses); PyBuffer_Release(&indices);
+    return false;
 }
 
 bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window) {
@@ -774,17 +777,16 @@ PyObject *witnesses(PyObject *, PyObject *args) {
     Py_buffer poses, pairs;
     Py_ssize_t m, k;
     double behind;
-    PyObject *so = nullptr;
-    if (!parse_indexed(args, s, poses, pairs, 2, usage, m, k, behind, &so)) return nullptr;
     std::vector<double> short_of;
-    bool ok = take_short_of(so, m, short_of);
+    if (!parse_indexed(args, s, poses, pairs, 2, usage, m, k, behind, short_of)) return nullptr;
+    bool ok = true;
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
     const int64_t *q = static_cast<const int64_t *>(pairs.buf);
     Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
     for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = q[2 * i] >= 0 && q[2 * i] < nm && q[2 * i + 1] >= 0 && q[2 * i + 1] < nf;
     if (!ok) {
         PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
-        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, usage);
+        PyErr_SetString(PyExc_ValueError, usage);
         return nullptr;
     }
     std::vector<double> out(m, kInf);
@@ -850,17 +852,16 @@ PyObject *vertex_gaps(PyObject *, PyObject *args) {
     Py_buffer poses, verts;
     Py_ssize_t m, k;
     double behind;
-    PyObject *so = nullptr;
-    if (!parse_indexed(args, s, poses, verts, 1, usage, m, k, behind, &so)) return nullptr;
     std::vector<double> short_of;
-    bool ok = take_short_of(so, m, short_of);
+    if (!parse_indexed(args, s, poses, verts, 1, usage, m, k, behind, short_of)) return nullptr;
+    bool ok = true;
     const int64_t *v = static_cast<const int64_t *>(verts.buf);
     Py_ssize_t nv = static_cast<Py_ssize_t>(s.moving->body->vertices.size() / 3);
     for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = v[i] >= 0 && v[i] < nv;
     if (!ok || s.fixed->body->nodes.empty()) {
         PyBuffer_Release(&poses); PyBuffer_Release(&verts);
         if (!ok) {
-            if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, usage);
+            PyErr_SetString(PyExc_ValueError, usage);
             return nullptr;
         }
         std::vector<double> none(m, kInf);
