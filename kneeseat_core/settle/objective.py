@@ -50,10 +50,6 @@ class Objective:
         """The objective with the body at `pose` (m)."""
         raise NotImplementedError
 
-    def values(self, poses: Floats) -> Floats:
-        """(m,) the objective at each of `poses` (m, 4, 4)."""
-        raise NotImplementedError
-
     def first_order(self, pose: Pose) -> tuple[float, Floats]:
         """(press, drive (3,)) at `pose`: a move x over (slide e1, slide e2, arc) that
         changes the travel by dt changes the objective by press dt + drive . x, to first
@@ -89,11 +85,6 @@ class Travel(Objective):
     def value(self, pose: Pose) -> float:
         """The pose's depth along Δ (the travel up to a constant)."""
         return self.search.depth(pose)
-
-    def values(self, poses: Floats) -> Floats:
-        """(m,) each pose's depth along Δ."""
-        out: Floats = poses[:, :3, 3] @ self.search.push
-        return out
 
     def first_order(self, pose: Pose) -> tuple[float, Floats]:
         """The travel itself: (1, 0)."""
@@ -199,14 +190,6 @@ class Work(Objective):
         """The load's work (l . c, or -|o - c|) less E / F (m)."""
         per_load = self._tissue(pose)[0]
         return self._work(pose) - per_load
-
-    def values(self, poses: Floats) -> Floats:
-        """(m,) the objective at each of `poses` (m, 4, 4), the tissue weighed at all at
-        once."""
-        energies = np.zeros(len(poses)) if self.tissue is None else \
-            self.tissue.rates_many(poses)[0]
-        out: Floats = self._works(poses)[0] - energies / self.load_n
-        return out
 
     def _work(self, pose: Pose) -> float:
         """The load's work per unit load, l . c or -|o - c| (m)."""

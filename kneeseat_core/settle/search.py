@@ -189,7 +189,8 @@ class Search:
 
     def limits_to_envelope(self, pose: Pose, arm: float, directions: Floats,
                            length: float) -> list[float]:
-        """`limit_to_envelope` along each of `directions` (m, 3) from one `pose`."""
+        """The longest move from `pose` along each of `directions` (m, 3) (up to `length`)
+        that stays inside an envelope that holds (`length` itself otherwise)."""
         p = self.params
         if not p.envelope_holds:
             return [length] * len(directions)
@@ -254,7 +255,7 @@ class Search:
 
     def back_out(self, pose: Pose) -> Pose:
         """Move a start in collision back along -Δ until free (recorded in backed_out_m);
-        python-fcl decides (a start may be buried where no vertex ray sees it)."""
+        python-fcl decides."""
         if not self.pair.collides(pose):
             return pose
         self.backed_out_m = self._retreat(
