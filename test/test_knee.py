@@ -32,8 +32,7 @@ from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_angle
 from kneeseat_core.knee import BodySpec, KneeConfig, load_config
 from kneeseat_core.settle import settle
 from kneeseat_core.sweep import warm_start
-from kneeseat_core.referee import Referee, verify_table
-from kneeseat_core.referee.judge import Load
+from kneeseat_core.referee import body_load, Referee, verify_table
 from kneeseat_core.table import PoseTable, read_table, write_table
 from kneeseat_core.typed import Floats
 
@@ -269,22 +268,6 @@ class MidCell:
     lookup_gain_mm: float    # what the referee still gains from the interpolated pose
 
 
-def mid_load(config: KneeConfig, spec: BodySpec, placed: dict[str, Floats]) -> Load | None:
-    """The referee's own view of the ligaments on `spec` (its energy, nothing of the
-    settle's), every point not on the body placed by `placed` (name -> pose)."""
-    assert config.ligaments is not None
-    fibres = config.ligaments.acting_on(spec.name, tuple(placed))
-    if not fibres or spec.load_n is None:
-        return None
-    paths = tuple((np.array([p if b == spec.name else placed[b][:3, :3] @ p + placed[b][:3, 3]
-                             for b, p in zip(f.bodies, f.points)]),
-                   np.array([b == spec.name for b in f.bodies])) for f in fibres)
-    toward = None if spec.load_toward is None else np.asarray(spec.load_toward, dtype=float)
-    return Load(float(spec.load_n), toward, paths, np.array([f.slack_m for f in fibres]),
-                np.array([f.stiffness_n for f in fibres]),
-                np.array([f.transition for f in fibres]))
-
-
 @pytest.fixture(scope='module')
 def midcells(full: Knee) -> list[MidCell]:
     """N_MIDPOINTS seeded mid-cells, each settled directly (every body, with the ligaments
@@ -315,7 +298,8 @@ def midcells(full: Knee) -> list[MidCell]:
                             tissue=config.ligaments.tissue(spec.name, placed))
             assert result.converged, result.reason
             referee = Referee([fixed.mesh], [bodies[b].mesh], np.asarray(params.push),
-                              params.resolution_m, load=mid_load(config, spec, placed))
+                              params.resolution_m,
+                              load=body_load(config, config.ligaments, params, spec, placed))
             placed[spec.name] = result.pose
             interpolated = pose_from(matrix_from_quat(lookup.orientation_xyzw[b]),
                                      lookup.position_m[b])

@@ -18,7 +18,7 @@ from concurrent.futures import as_completed, Executor
 from dataclasses import dataclass
 import math
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 import trimesh
@@ -35,7 +35,7 @@ from kneeseat_core.table import PoseTable, read_table
 from kneeseat_core.typed import Pose
 from .judge import Envelope, Load, Referee
 
-__all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'mesh_file']
+__all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'mesh_file', 'body_load']
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,32 +152,39 @@ def _meshes(spec: BodySpec, units: Units, mesh_dir: str | None) -> list[trimesh.
     return [load_mesh(mesh_file(p, mesh_dir), units, quiet=True) for p in spec.meshes]
 
 
-def _cell_load(config: KneeConfig, ligaments: LigamentSet | None, table: PoseTable,
-               params: SettleParams, cell: tuple[int, int, int]) -> Load | None:
-    """The load and the fibres pulling on the body at a cell, every point not on the body
-    placed by the table's own pose of its body there; None without ligaments."""
-    b, i, j = cell
-    spec = config.bodies[b]
+def body_load(config: KneeConfig, ligaments: LigamentSet | None, params: SettleParams,
+              spec: BodySpec, placed: Mapping[str, Pose]) -> Load | None:
+    """The load and the fibres pulling on `spec`'s body, every point on another moving body
+    placed by that body's pose in `placed` (name -> pose; the reference's points stay as
+    given); None without ligaments or a load."""
     if ligaments is None or params.load_n is None:
         return None
     fibres = ligaments.acting_on(spec.name, config.placed_before(spec))
     if not fibres:
         return None
-    index = {body.name: k for k, body in enumerate(config.bodies)}
     paths = []
     for fibre in fibres:
         points = np.array(fibre.points, dtype=np.float64)
         on_body = np.array([name == spec.name for name in fibre.bodies])
         for n, name in enumerate(fibre.bodies):
             if name != spec.name and name != config.reference.name:
-                k = index[name]
-                rot = matrix_from_quat(table.orientation_xyzw[k, i, j])
-                points[n] = rot @ points[n] + table.position_m[k, i, j]
+                pose = placed[name]
+                points[n] = pose[:3, :3] @ points[n] + pose[:3, 3]
         paths.append((points, on_body))
     toward = None if params.load_toward is None else np.asarray(params.load_toward, dtype=float)
     return Load(float(params.load_n), toward, tuple(paths),
                 np.array([f.slack_m for f in fibres]), np.array([f.stiffness_n for f in fibres]),
                 np.array([f.transition for f in fibres]))
+
+
+def _cell_load(config: KneeConfig, ligaments: LigamentSet | None, table: PoseTable,
+               params: SettleParams, cell: tuple[int, int, int]) -> Load | None:
+    """`body_load` at a cell, the other bodies placed by the table's own poses there."""
+    b, i, j = cell
+    placed = {body.name: pose_from(matrix_from_quat(table.orientation_xyzw[k, i, j]),
+                                   table.position_m[k, i, j])
+              for k, body in enumerate(config.bodies[:b])}
+    return body_load(config, ligaments, params, config.bodies[b], placed)
 
 
 def _cell_problem(config: KneeConfig, meta: dict[str, Any], body: int, flexion: float,
