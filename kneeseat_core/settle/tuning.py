@@ -21,7 +21,9 @@ class SettleTuning:
     Contact:
         standoff_res: a pose at contact stands this far short of touching along the push
             (the travel is exact: the pose is free by this much, python-fcl agrees).
-        window_res: a pose's features are those closing within this far beyond contact...
+        window_res: a pose's features are those closing within this far beyond contact
+            (what the climb uses of them is within `contact_tol_res`: this covers it, with a
+            margin no rounding crosses, and the search prunes everything beyond)...
         pool_window_res: ...and the witnesses' pool those within this, taken at the first
             contact and again wherever the climb has moved...
         pool_reach_moves: ...this many finest moves from where it was taken.
@@ -63,7 +65,7 @@ class SettleTuning:
     """
 
     standoff_res: float = 1.0 / 1024.0
-    window_res: float = 0.5
+    window_res: float = 0.3
     pool_window_res: float = 2.0
     pool_reach_moves: float = 4.0
     contact_tol_res: float = 0.25
