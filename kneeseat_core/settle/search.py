@@ -29,6 +29,10 @@ __all__ = ['Contacts', 'SettleResult', 'Search', 'Bracket', 'LOST_CONTACT', 'tra
 
 log = logging.getLogger('kneeseat_core.settle')
 
+# the relative margin by which a move must stay inside the envelope's bounds for its room
+# not to be computed (`Search.limits_to_envelope`)
+_MARGIN = 1e-9
+
 LOST_CONTACT = ('lost contact: the body slid off the edge of the fixed body without finding '
                 'rest along this push')
 
@@ -195,6 +199,14 @@ class Search:
         if not p.envelope_holds:
             return [length] * len(directions)
         slide, spin = self.offset(pose)
+        # far enough inside that no move reaches a bound (with a margin no rounding of the
+        # bounds below can cross): every move keeps its whole length
+        across = float(np.max(np.hypot(directions[:, 0], directions[:, 1]), initial=0.0))
+        turn = float(np.max(np.abs(directions[:, 2]), initial=0.0))
+        if (math.hypot(float(slide[0]), float(slide[1])) + across * length
+                < (1.0 - _MARGIN) * p.max_slide_m
+                and abs(spin) + turn * length / arm < (1.0 - _MARGIN) * p.max_spin_rad):
+            return [length] * len(directions)
         bb = float(slide @ slide)
         out = []
         for direction in directions:
