@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from . import _tissue
 from .errors import ConfigError
 from .typed import Bools, Floats, Ints, Pose
 
@@ -289,29 +290,18 @@ class Tissue:
         torque = np.array([m[1, 2] - m[2, 1], m[2, 0] - m[0, 2], m[0, 1] - m[1, 0]])
         return energy, self.seg_sign @ pull, torque
 
-    def rates_many(self, poses: Floats) -> tuple[Floats, Floats, Floats]:
-        """`rates` at each of `poses` (m, 4, 4) at once: energies (m,), dE/dt (m, 3),
-        dE/dθ (m, 3), each pose's figures the ones `rates` gives it alone, bit for bit (the
-        same products and sums, stacked; a few microseconds a pose instead of some 45)."""
-        rot, shift = poses[:, :3, :3], poses[:, :3, 3]
-        moving = self.seg_local @ rot.transpose(0, 2, 1) \
-            + self.seg_sign[:, None] * shift[:, None]
-        d = moving + self.seg_fixed
-        seg = np.sqrt(np.einsum('mij,mij->mi', d, d))
-        fibres = len(self.slack_m)
-        lengths = seg if self.single else np.bincount(
-            (self.seg_fibre + fibres * np.arange(len(poses))[:, None]).ravel(), seg.ravel(),
-            minlength=len(poses) * fibres).reshape(len(poses), fibres)
-        force, per_slack = _law(lengths / self.slack_m - 1.0, self.stiffness_n,
-                                self.transition)
-        # one dot a pose: a matrix-vector product would sum in another order
-        energy = np.array([float(row @ self.slack_m) for row in per_slack])
-        tension = force if self.single else force[:, self.seg_fibre]
-        pull = d * (tension / np.maximum(seg, 1e-12))[:, :, None]
-        m = moving.transpose(0, 2, 1) @ pull
-        torque = np.stack([m[:, 1, 2] - m[:, 2, 1], m[:, 2, 0] - m[:, 0, 2],
-                           m[:, 0, 1] - m[:, 1, 0]], axis=1)
-        return energy, pull.transpose(0, 2, 1) @ self.seg_sign, torque
+    def pushes_many(self, poses: Floats) -> tuple[Floats, Floats]:
+        """The energies (m,) and dE/dt (m, 3) that `rates` gives at each of `poses` (m, 4,
+        4), to rounding, computed at once (compiled, `_tissue.cpp`: 27 poses of the total
+        knee's 91 segments in about 50 us, a third of what numpy's stacked arrays took)."""
+        def floats(a: Floats) -> Floats:
+            return np.ascontiguousarray(a, dtype=np.float64)
+        raw_energies, raw_forces = _tissue.pushes(
+            floats(self.seg_local), floats(self.seg_sign), floats(self.seg_fixed),
+            np.ascontiguousarray(self.seg_fibre, dtype=np.int64), floats(self.slack_m),
+            floats(self.stiffness_n), floats(self.transition), floats(poses))
+        return np.frombuffer(raw_energies, dtype=np.float64).copy(), \
+            np.frombuffer(raw_forces, dtype=np.float64).reshape(-1, 3).copy()
 
 
 # ---- reading a set --------------------------------------------------------------------

@@ -126,7 +126,7 @@ class Work(Objective):
         if self.tissue is None:
             energies, forces = np.zeros(len(targets)), np.zeros((len(targets), 3))
         else:
-            energies, forces, _ = self.tissue.rates_many(targets)
+            energies, forces = self.tissue.pushes_many(targets)
         work, lines = self._works(targets)
         slope = lines @ self.search.push - forces @ self.search.push / self.load_n
         out = np.full(len(targets), math.inf)
