@@ -43,8 +43,8 @@ from kneeseat_core.errors import NoContactError
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.meshes.sweep import SweepPair, Touch
 from kneeseat_core.status import Status
-from kneeseat_core.typed import Floats, Pose
-from .model import best_move, Model, STEEPEST
+from kneeseat_core.typed import Bools, Floats, Pose
+from .model import best_move, feature_slopes, Model, STEEPEST
 from .objective import Objective, objective_for
 from .search import Contacts, LOST_CONTACT, Search, SettleResult, translated
 from .tuning import SettleTuning, TUNING
@@ -58,7 +58,7 @@ _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
 End = tuple[int, str]    # (Status code, reason)
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(slots=True, eq=False)
 class _Place:
     """A pose at contact (free, a standoff short of touching along Δ): what it is worth,
     its lateral state (slide e1, slide e2, arc from the anchor) and the features closing
@@ -69,8 +69,10 @@ class _Place:
     state: Floats
     touch: Touch
     wide: bool
-    # the models of the travel about it, by (within, room) (`_Climb.model`)
+    # the models of the travel about it, by (within, room), and the slopes of all its
+    # features they are drawn from (`_Climb.model`)
     models: dict[tuple[float, float], Model] = field(default_factory=dict)
+    slopes: tuple[Floats, Bools] | None = None
 
 
 class _Short:
@@ -162,12 +164,15 @@ class _Climb:
         if found is not None:
             return found
         s, t = self.search, place.touch
+        if place.slopes is None:
+            place.slopes = feature_slopes(t.normals, t.points, s.push, s.e1, s.e2,
+                                          s.centre(place.pose), self.arm, s.free)
+        slopes, kept = place.slopes
         near = t.gaps <= within
         if (near & (t.rooms >= room)).any():
             near &= t.rooms >= room
-        found = place.models[(within, room)] = Model.of(
-            t.gaps[near], t.normals[near], t.points[near], t.faces[near], s.push, s.e1, s.e2,
-            s.centre(place.pose), self.arm, s.free)
+        near &= kept
+        found = place.models[(within, room)] = Model(t.gaps[near], slopes[near], t.faces[near])
         return found
 
     def settle_in(self, place: _Place) -> None:
