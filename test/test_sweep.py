@@ -209,10 +209,11 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
                 seed: int) -> tuple[int, int]:
     """Probes about a contact pose, as the climb makes them: every pair of triangles within
     0.3 mm of touching there, and the vertices of its moving triangles, asked at each
-    probe. Where a gap is short of the probe's lift, python-fcl must find the probe lifted
-    by it in collision. Searches told to stop short of the lift (`short_of`) must say short
-    exactly where the whole search does, and otherwise give its answer. Returns (refuted
-    probes, probes)."""
+    probe. Where a witness is short of the probe's lift, python-fcl must find the probe
+    lifted by it in collision; the whole search must then find a travel short of the lift
+    too, and where it does not, no witness may say so. A search told to stop short of the
+    lift (`short_of`) must say short exactly where the whole search does, and otherwise
+    give its answer. Returns (refuted probes, probes)."""
     pair = CollisionPair(fixed, moving)
     free = backed(pair, start, push)
     free[:3, 3] += (fcl_travel(pair, free, push) - 1e-7) * push
@@ -222,25 +223,17 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
     centre = free[:3, :3] @ moving.centroid + free[:3, 3]
     probes = np.array(lateral_poses(free, push, centre, seed, 24, 3e-4, 0.5))
     lifts = np.random.default_rng(seed).choice([2.5e-6, 2.5e-5, 1e-4], len(probes))
-    pairs = np.broadcast_to(touch.faces, (len(probes),) + touch.faces.shape)
-    gaps = sweep.witnesses(probes, pairs, 0.0)
-    stopped = sweep.witnesses(probes, pairs, 0.0, lifts)
-    assert np.array_equal(stopped < lifts, gaps < lifts)
-    assert np.array_equal(stopped[gaps >= lifts], gaps[gaps >= lifts])
-    vertices = np.broadcast_to(np.unique(moving.faces[touch.faces[:, 0]]),
-                               (len(probes), len(np.unique(moving.faces[touch.faces[:, 0]]))))
-    reached = sweep.vertex_gaps(probes, vertices, 1e-3)
-    stopped = sweep.vertex_gaps(probes, vertices, 1e-3, lifts)
-    assert np.array_equal(stopped < lifts, reached < lifts)
-    assert np.array_equal(stopped[reached >= lifts], reached[reached >= lifts])
-    for probe, lift in zip(probes, lifts):
+    # every pair a witness: ranked by their gaps at the contact pose, each probe's move nil
+    features = (touch.gaps, np.zeros((len(touch.gaps), 3)), touch.faces)
+    refuted = sweep.refuted(probes, lifts, features, np.zeros((len(probes), 3)),
+                            len(touch.gaps), 0.0, 1e-3)
+    for probe, lift, no in zip(probes, lifts, refuted):
         whole = sweep.touch(probe, 1e-3, 3e-4)
         short = sweep.touch(probe, 1e-3, 3e-4, short_of=lift)
         assert not whole.buried and (short.travel < lift) == (whole.travel < lift)
         if whole.travel >= lift:
+            assert not no, 'a witness closed short of a travel the whole search finds'
             assert short.travel == whole.travel and np.array_equal(short.gaps, whole.gaps)
-    refuted = (gaps < lifts) | (reached < lifts)
-    for probe, lift, no in zip(probes, lifts, refuted):
         if no:
             lifted = probe.copy()
             lifted[:3, 3] += lift * push
@@ -288,16 +281,21 @@ def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
         _sweep.travels(fixed, moving, np.eye(3), 0.0, 0.0, 1.0)
     with pytest.raises(ValueError):
         _sweep.travels(fixed, moving, np.eye(4)[None], -1.0, 0.0, 1.0)
-    with pytest.raises(ValueError):
-        _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 99]]]), 0.0)
-    with pytest.raises(ValueError):
-        _sweep.vertex_gaps(fixed, moving, np.eye(4)[None], np.array([[99]]), 0.0)
-    with pytest.raises(ValueError):
-        _sweep.vertex_gaps(fixed, moving, np.eye(4)[None], np.array([[0]]), 0.0, np.zeros(2))
-    with pytest.raises(ValueError):
-        _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 0]]]), 0.0, np.zeros(3))
+    pose, one = np.eye(4)[None], np.zeros(1)
+    features = (np.zeros(1), np.zeros((1, 3)), np.array([[0, 0]]))
+    with pytest.raises(ValueError):       # a face the body does not have
+        _sweep.refuted(fixed, moving, pose, one, features[0], features[1], np.array([[0, 99]]),
+                       np.zeros((1, 3)), 1, 0.0, 0.0)
+    with pytest.raises(ValueError):       # a needed travel too many
+        _sweep.refuted(fixed, moving, pose, np.zeros(2), *features, np.zeros((1, 3)), 1, 0.0,
+                       0.0)
+    with pytest.raises(ValueError):       # slopes of the wrong shape
+        _sweep.refuted(fixed, moving, pose, one, features[0], np.zeros(2), features[2],
+                       np.zeros((1, 3)), 1, 0.0, 0.0)
+    with pytest.raises(ValueError):       # a negative depth
+        _sweep.refuted(fixed, moving, pose, one, *features, np.zeros((1, 3)), 1, 0.0, -1.0)
     with pytest.raises(TypeError):
-        _sweep.witnesses(fixed, moving, np.eye(4)[None], np.array([[[0, 0]]]), 0.0, 'x')
+        _sweep.refuted(fixed, moving, pose, 'x', *features, np.zeros((1, 3)), 1, 0.0, 0.0)
     with pytest.raises(ValueError):
         _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, math.nan)
 

@@ -658,44 +658,6 @@ bool take_views(PyObject *fo, PyObject *mo, Sweep &s) {
     return false;
 }
 
-// An optional short_of argument (None or absent: -inf for every pose), (m,) float64; false
-// with the error set where it has another shape.
-bool take_short_of(PyObject *so, Py_ssize_t m, std::vector<double> &out) {
-    out.assign(m, -kInf);
-    if (so == nullptr || so == Py_None) return true;
-    Py_buffer b;
-    if (!get_buffer(so, &b, "d", 8, "short_of")) return false;
-    bool ok = b.len == 8 * m;
-    if (ok) std::memcpy(out.data(), b.buf, m * 8);
-    else PyErr_SetString(PyExc_ValueError, "short_of: one number per pose");
-    PyBuffer_Release(&b);
-    return ok;
-}
-
-// The arguments of witnesses and vertex_gaps: (fixed_view, moving_view, poses (m, 4, 4),
-// indices (m, k, width) of int64, behind[, short_of (m,)]). On success both buffers are
-// held and m, k and short_of set; on failure nothing is held and the error is set (`usage`
-// names the shapes).
-bool parse_indexed(PyObject *args, Sweep &s, Py_buffer &poses, Py_buffer &indices, Py_ssize_t width,
-                   const char *usage, Py_ssize_t &m, Py_ssize_t &k, double &behind,
-                   std::vector<double> &short_of) {
-    PyObject *fo, *mo, *po, *io, *so = nullptr;
-    if (!PyArg_ParseTuple(args, "O!O!OOd|O", &ViewType, &fo, &ViewType, &mo, &po, &io, &behind, &so))
-        return false;
-    if (!take_views(fo, mo, s)) return false;
-    if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
-    if (!get_buffer(io, &indices, "q", 8, "indices")) { PyBuffer_Release(&poses); return false; }
-    m = poses.len / 128;
-    k = m > 0 ? indices.len / (8 * width * m) : 0;
-    if (poses.len % 128 != 0 || indices.len != 8 * width * m * k) {
-        PyErr_SetString(PyExc_ValueError, usage);
-    } else if (take_short_of(so, m, short_of)) {
-        return true;
-    }
-    PyBuffer_Release(&poses); PyBuffer_Release(&indices);
-    return false;
-}
-
 bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window) {
     PyObject *fo, *mo, *po;
     if (!PyArg_ParseTuple(args, "O!O!Oddd|d", &ViewType, &fo, &ViewType, &mo, &po, &s.behind, &window,
@@ -766,46 +728,6 @@ PyObject *contacts(PyObject *, PyObject *args) {
                          static_cast<Py_ssize_t>(kept.size() * sizeof(Feature)), s.pairs);
 }
 
-// witnesses(fixed_view, moving_view, poses (m, 4, 4), pairs (m, k, 2) of (moving face,
-// fixed face), behind[, short_of (m,)]) -> (m,) the least gap of a pose's pairs at that
-// pose (a pair counts where the shadows overlap and it does not lie wholly behind the pose
-// lowered by `behind`; inf: none does); where short_of is given, a pose's pairs are asked
-// in turn until one's gap is below its short_of (that gap is returned)
-PyObject *witnesses(PyObject *, PyObject *args) {
-    static const char usage[] = "witnesses: poses (m, 4, 4), pairs (m, k, 2) of face indices and short_of (m,)";
-    Sweep s;
-    Py_buffer poses, pairs;
-    Py_ssize_t m, k;
-    double behind;
-    std::vector<double> short_of;
-    if (!parse_indexed(args, s, poses, pairs, 2, usage, m, k, behind, short_of)) return nullptr;
-    bool ok = true;
-    const Body &mb = *s.moving->body, &fb = *s.fixed->body;
-    const int64_t *q = static_cast<const int64_t *>(pairs.buf);
-    Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
-    for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = q[2 * i] >= 0 && q[2 * i] < nm && q[2 * i + 1] >= 0 && q[2 * i + 1] < nf;
-    if (!ok) {
-        PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
-        PyErr_SetString(PyExc_ValueError, usage);
-        return nullptr;
-    }
-    std::vector<double> out(m, kInf);
-    const double *p = static_cast<const double *>(poses.buf);
-    for (Py_ssize_t i = 0; i < m; ++i) {
-        s.place(p + 16 * i);
-        for (Py_ssize_t j = 0; j < k && !(out[i] < short_of[i]); ++j) {
-            const int64_t *pair = q + 2 * (i * k + j);
-            const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
-            const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
-            const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
-            PairGap g(A, B);
-            if (g.kind >= 0 && g.most >= -behind) out[i] = std::min(out[i], g.least);
-        }
-    }
-    PyBuffer_Release(&poses); PyBuffer_Release(&pairs);
-    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), m * 8);
-}
-
 // The least of `best` and the gaps along d from the moving body's vertex `i` (placed by
 // the sweep) up to a front face of the fixed body, over faces no more than `behind` below
 // it (a branch that cannot go below `best` is not opened).
@@ -841,56 +763,125 @@ double vertex_gap(Sweep &s, int32_t i, double behind, double best, std::vector<i
     return best;
 }
 
-// vertex_gaps(fixed_view, moving_view, poses (m, 4, 4), vertices (m, k) of the moving body,
-// behind[, short_of (m,)]) -> (m,) the least gap along d from those vertices up to the
-// fixed body at each pose (a vertex lying on a face more than `behind` above the face does
-// not count); where short_of is given, a pose's search stops at the first gap below its
-// short_of (that gap is returned: the least is at most that)
-PyObject *vertex_gaps(PyObject *, PyObject *args) {
-    static const char usage[] = "vertex_gaps: poses (m, 4, 4), vertices (m, k) and short_of (m,)";
-    Sweep s;
-    Py_buffer poses, verts;
-    Py_ssize_t m, k;
-    double behind;
-    std::vector<double> short_of;
-    if (!parse_indexed(args, s, poses, verts, 1, usage, m, k, behind, short_of)) return nullptr;
-    bool ok = true;
-    const int64_t *v = static_cast<const int64_t *>(verts.buf);
-    Py_ssize_t nv = static_cast<Py_ssize_t>(s.moving->body->vertices.size() / 3);
-    for (Py_ssize_t i = 0; ok && i < m * k; ++i) ok = v[i] >= 0 && v[i] < nv;
-    if (!ok || s.fixed->body->nodes.empty()) {
-        PyBuffer_Release(&poses); PyBuffer_Release(&verts);
-        if (!ok) {
-            PyErr_SetString(PyExc_ValueError, usage);
-            return nullptr;
-        }
-        std::vector<double> none(m, kInf);
-        return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(none.data()), m * 8);
+// A buffer `what` of `count` float64 (or int64 where `format` is "q"), held on success;
+// false with the error set otherwise.
+bool get_sized(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t count, const char *what) {
+    if (!get_buffer(obj, &view, format, 8, what)) return false;
+    if (view.len == 8 * count) return true;
+    PyErr_Format(PyExc_ValueError, "refuted: %s has the wrong shape", what);
+    PyBuffer_Release(&view);
+    return false;
+}
+
+// The witnesses of one pose: the `count` pairs of the ranking whose predicted gap after
+// the pose's move is least, then the vertices of their moving triangles; true as soon as
+// one closes short of `needed` (least gap of a pair over the overlap of its shadows, over
+// pairs not wholly `behind` below; a vertex onto any front face at most `deepest` below it).
+struct Witnesses {
+    const double *gaps, *slopes;
+    const int64_t *faces;
+    Py_ssize_t k;
+    int count;
+    double behind, deepest;
+    std::vector<double> predicted;
+    std::vector<int32_t> order, vertices, stack;
+
+    bool refute(Sweep &s, const double *move, double needed);
+};
+
+bool Witnesses::refute(Sweep &s, const double *move, double needed) {
+    const Body &mb = *s.moving->body, &fb = *s.fixed->body;
+    predicted.resize(k);
+    order.resize(k);
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        predicted[j] = gaps[j] + move[0] * slopes[3 * j] + move[1] * slopes[3 * j + 1] + move[2] * slopes[3 * j + 2];
+        order[j] = static_cast<int32_t>(j);
     }
-    std::vector<double> out(m, kInf);
-    std::vector<int32_t> stack;
-    std::vector<int64_t> row(k);
-    const double *p = static_cast<const double *>(poses.buf);
+    Py_ssize_t n = std::min<Py_ssize_t>(count, k);
+    auto first = [this](int32_t a, int32_t b) { return predicted[a] < predicted[b]; };
+    if (n < k) std::nth_element(order.begin(), order.begin() + n, order.end(), first);
+    std::sort(order.begin(), order.begin() + n, first);
+    vertices.clear();
+    for (Py_ssize_t r = 0; r < n; ++r) {
+        const int64_t *pair = faces + 2 * order[r];
+        const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
+        const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
+        const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
+        PairGap g(A, B);
+        if (g.kind >= 0 && g.most >= -behind && g.least < needed) return true;
+        vertices.insert(vertices.end(), fa, fa + 3);
+    }
+    if (fb.nodes.empty()) return false;
+    // each vertex once (the triangles of a contact share most of theirs)
+    std::sort(vertices.begin(), vertices.end());
+    vertices.erase(std::unique(vertices.begin(), vertices.end()), vertices.end());
+    double least = kInf;
+    for (int32_t v : vertices) {
+        least = vertex_gap(s, v, deepest, least, stack);
+        if (least < needed) return true;
+    }
+    return false;
+}
+
+// refuted(fixed_view, moving_view, poses (m, 4, 4), needed (m,), gaps (k,), slopes (k, 3),
+// faces (k, 2) of (moving face, fixed face), moves (m, 3), count, behind, deepest)
+//   -> (m,) int8: 1 where a witness of the pose closes short of its needed travel. The
+//   features (gaps, slopes over a lateral move, their triangles) rank a pose's pairs by the
+//   gap they predict after its move; see Witnesses.
+PyObject *refuted(PyObject *, PyObject *args) {
+    PyObject *fo, *mo, *po, *no, *go, *so, *fco, *mvo;
+    Witnesses w;
+    Sweep s;
+    if (!PyArg_ParseTuple(args, "O!O!OOOOOOidd", &ViewType, &fo, &ViewType, &mo, &po, &no, &go, &so,
+                          &fco, &mvo, &w.count, &w.behind, &w.deepest))
+        return nullptr;
+    if (!take_views(fo, mo, s)) return nullptr;
+    Py_buffer bufs[6];
+    int held = 0;
+    bool ok = get_buffer(po, &bufs[0], "d", 8, "poses") && ++held;
+    Py_ssize_t m = ok ? bufs[0].len / 128 : 0;
+    if (ok && bufs[0].len != 128 * m) {
+        PyErr_SetString(PyExc_ValueError, "refuted: poses has the wrong shape");
+        ok = false;
+    }
+    ok = ok && get_sized(no, bufs[1], "d", m, "needed") && ++held;
+    ok = ok && get_buffer(go, &bufs[2], "d", 8, "gaps") && ++held;
+    Py_ssize_t k = ok ? bufs[2].len / 8 : 0;
+    ok = ok && get_sized(so, bufs[3], "d", 3 * k, "slopes") && ++held;
+    ok = ok && get_sized(fco, bufs[4], "q", 2 * k, "faces") && ++held;
+    ok = ok && get_sized(mvo, bufs[5], "d", 3 * m, "moves") && ++held;
+    const Body &mb = *s.moving->body, &fb = *s.fixed->body;
+    const int64_t *faces = ok ? static_cast<const int64_t *>(bufs[4].buf) : nullptr;
+    Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
+    for (Py_ssize_t j = 0; ok && j < k; ++j)
+        ok = faces[2 * j] >= 0 && faces[2 * j] < nm && faces[2 * j + 1] >= 0 && faces[2 * j + 1] < nf;
+    if (ok && (w.count < 0 || !(w.behind >= 0.0) || !(w.deepest >= 0.0))) ok = false;
+    if (!ok) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "refuted: poses (m, 4, 4), needed (m,), gaps (k,), slopes (k, 3), "
+                                              "faces (k, 2) of face indices, moves (m, 3), count, behind and deepest not negative");
+        for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
+        return nullptr;
+    }
+    w.gaps = static_cast<const double *>(bufs[2].buf);
+    w.slopes = static_cast<const double *>(bufs[3].buf);
+    w.faces = faces;
+    w.k = k;
+    const double *p = static_cast<const double *>(bufs[0].buf), *needed = static_cast<const double *>(bufs[1].buf);
+    const double *moves = static_cast<const double *>(bufs[5].buf);
+    std::vector<int8_t> out(m, 0);
     for (Py_ssize_t i = 0; i < m; ++i) {
         s.place(p + 16 * i);
-        // each vertex once (the triangles of a contact share most of theirs)
-        row.assign(v + i * k, v + (i + 1) * k);
-        std::sort(row.begin(), row.end());
-        row.erase(std::unique(row.begin(), row.end()), row.end());
-        for (int64_t vertex : row) {
-            out[i] = vertex_gap(s, static_cast<int32_t>(vertex), behind, out[i], stack);
-            if (out[i] < short_of[i]) break;
-        }
+        out[i] = w.refute(s, moves + 3 * i, needed[i]) ? 1 : 0;
     }
-    PyBuffer_Release(&poses); PyBuffer_Release(&verts);
-    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), m * 8);
+    for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
+    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), m);
 }
 
 PyMethodDef module_methods[] = {
-    {"vertex_gaps", vertex_gaps, METH_VARARGS,
-     "vertex_gaps(fixed_view, moving_view, poses, vertices, behind[, short_of]) -> least gap at each pose"},
-    {"witnesses", witnesses, METH_VARARGS,
-     "witnesses(fixed_view, moving_view, poses, pairs, behind[, short_of]) -> least gap of a pose's pairs"},
+    {"refuted", refuted, METH_VARARGS,
+     "refuted(fixed_view, moving_view, poses, needed, gaps, slopes, faces, moves, count, behind, deepest) "
+     "-> where a witness closes short of the needed travel"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

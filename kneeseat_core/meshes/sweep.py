@@ -207,38 +207,32 @@ class SweepPair:
                      f['point'].copy(), f['room'].copy(), f['kind'].copy(),
                      np.column_stack([f['moving_face'], f['fixed_face']]))
 
-    def witnesses(self, poses: Floats, pairs: Ints, behind: float = 0.0,
-                  short_of: Floats | None = None) -> Floats:
-        """(m,) the least gap along Δ of the pairs of triangles `pairs` (m, k, 2) (moving
-        face, fixed face) with the body at each of `poses` (m, 4, 4), over the pairs whose
-        shadows overlap and that do not lie wholly behind the pose lowered by `behind` (inf:
-        none). The travel from a pose is no longer than any of its pairs' gaps: a gap short
-        of what a probe needs refutes the probe without a search. With `short_of` (m,), a
-        pose's pairs are asked in turn until a gap is below its own: that gap is returned."""
-        poses = np.ascontiguousarray(poses, dtype=np.float64)
-        pairs = np.ascontiguousarray(pairs, dtype=np.int64)
-        if len(poses) == 0 or pairs.shape[1] == 0:
-            return np.full(len(poses), math.inf)
-        shorts = None if short_of is None else np.ascontiguousarray(short_of, dtype=np.float64)
-        raw = _sweep.witnesses(self._fixed_view, self._moving_view(poses[0]), poses, pairs,
-                               float(behind), shorts)
-        return np.frombuffer(raw, dtype=np.float64).copy()
+    def refuted(self, poses: Floats, needed: Floats, features: tuple[Floats, Floats, Ints],
+                moves: Floats, count: int, behind: float, deepest: float) -> np.ndarray:
+        """(m,) True where a contact with the body at each of `poses` (m, 4, 4) closes
+        short of the travel along Δ it `needed` (m,): the travel from that pose is no
+        longer than any contact's gap, so the pose cannot go that far (its witness).
 
-    def vertex_gaps(self, poses: Floats, vertices: Ints, behind: float,
-                    short_of: Floats | None = None) -> Floats:
-        """(m,) the least gap along Δ from the moving body's `vertices` (m, k) (indices) up
-        to a face of the fixed body, with the body at each of `poses` (m, 4, 4); a vertex
-        more than `behind` above a face does not count it. A vertex's gap is a contact (a
-        vertex on a face), so the travel from a pose is no longer than it. With `short_of`
-        (m,), a pose's search stops at the first gap below its own: that gap is returned."""
+        The witnesses of a pose: of the pairs of triangles of `features` (gaps (k,), their
+        slopes (k, 3) over a lateral move and the pairs (k, 2) of (moving face, fixed
+        face)), the `count` whose gap after the pose's move `moves` (m, 3) is predicted
+        least (the least gap over the overlap of their shadows, a pair lying wholly more
+        than `behind` below the pose not counting); then the vertices of their moving
+        triangles, each onto whatever face of the fixed body lies under it (a face more
+        than `deepest` above a vertex not counting). A pose's witnesses are asked in turn
+        until one closes short."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
-        vertices = np.ascontiguousarray(vertices, dtype=np.int64)
-        if len(poses) == 0 or vertices.shape[1] == 0:
-            return np.full(len(poses), math.inf)
-        shorts = None if short_of is None else np.ascontiguousarray(short_of, dtype=np.float64)
-        raw = _sweep.vertex_gaps(self._fixed_view, self._moving_view(poses[0]), poses,
-                                 vertices, float(behind), shorts)
-        return np.frombuffer(raw, dtype=np.float64).copy()
+        if len(poses) == 0:
+            return np.zeros(0, dtype=bool)
+        gaps, slopes, faces = features
+        raw = _sweep.refuted(self._fixed_view, self._moving_view(poses[0]), poses,
+                             np.ascontiguousarray(needed, dtype=np.float64),
+                             np.ascontiguousarray(gaps, dtype=np.float64),
+                             np.ascontiguousarray(slopes, dtype=np.float64),
+                             np.ascontiguousarray(faces, dtype=np.int64),
+                             np.ascontiguousarray(moves, dtype=np.float64),
+                             int(count), float(behind), float(deepest))
+        return np.frombuffer(raw, dtype=np.int8).astype(bool)
 
 
 def _finite(limit: float) -> float:

@@ -318,10 +318,10 @@ class _Climb:
         The near-active features order them (to first order they bound the travel after a
         move from above). A move is refuted without a search where a contact closes short
         of the travel it needs: a pair of triangles from the witnesses' pool that the pool
-        says close first after it (`SweepPair.witnesses`), or a vertex of their moving
-        triangles onto whatever face of the fixed body it meets there
-        (`SweepPair.vertex_gaps`). The rest are measured in turn, each search stopping as
-        soon as a contact short of the travel the move needs is found."""
+        says close first after it, or a vertex of their moving triangles onto whatever face
+        of the fixed body it meets there (`SweepPair.refuted`, all in one call). The rest
+        are measured in turn, each search stopping as soon as a contact short of the
+        travel the move needs is found."""
         assert self.here is not None and self.pool is not None
         s, t, sweep = self.search, self.tuning, self.sweep
         if len(moves) == 0:
@@ -342,20 +342,13 @@ class _Climb:
         open_ = np.isfinite(needed)
         pool = self.pool.model
         if len(pool.gaps) and open_.any():
-            shifted = moves[open_] + (here.state - self.pool.state)
-            pairs = pool.witnesses(shifted, t.witnesses)
-            refuted = sweep.witnesses(targets[open_], pairs, self.standoff, needed[open_]) \
-                < needed[open_]
-            left = ~refuted
-            if left.any():
-                # penetration from a lateral move of length l is at most its steepest slope
-                # times l: a vertex that far above a face is through it
-                vertices = s.pair.moving.faces[pairs[left, :, 0]].reshape(int(left.sum()), -1)
-                deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
-                reached = sweep.vertex_gaps(targets[open_][left], vertices, deepest,
-                                            needed[open_][left])
-                refuted[left] = reached < needed[open_][left]
-            open_[open_] = ~refuted
+            # penetration from a lateral move of length l is at most its steepest slope
+            # times l: a vertex that far above a face is through it
+            deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
+            open_[open_] = ~sweep.refuted(
+                targets[open_], needed[open_], (pool.gaps, pool.slopes, pool.faces),
+                moves[open_] + (here.state - self.pool.state), t.witnesses, self.standoff,
+                deepest)
         for i in np.flatnonzero(open_):
             window = t.pool_window_res if self._beyond_pool(self.state_of(targets[i])) else None
             place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]))
