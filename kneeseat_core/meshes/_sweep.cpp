@@ -783,27 +783,33 @@ struct Witnesses {
     Py_ssize_t k;
     int count;
     double behind, deepest;
-    std::vector<double> predicted;
-    std::vector<int32_t> order, vertices, stack;
+    std::vector<double> predicted, sorted;
+    std::vector<int32_t> first, vertices, stack;    // first: the pairs predicted to close first
 
     bool refute(Sweep &s, const double *move, double needed);
 };
 
 bool Witnesses::refute(Sweep &s, const double *move, double needed) {
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
+    // the `count` least predicted gaps: the count-th least found on a copy, then every pair
+    // at or below it, in the features' order, up to `count`
     predicted.resize(k);
-    order.resize(k);
-    for (Py_ssize_t j = 0; j < k; ++j) {
+    for (Py_ssize_t j = 0; j < k; ++j)
         predicted[j] = gaps[j] + move[0] * slopes[3 * j] + move[1] * slopes[3 * j + 1] + move[2] * slopes[3 * j + 2];
-        order[j] = static_cast<int32_t>(j);
+    first.clear();
+    if (count > 0 && k > 0) {
+        double bar = kInf;
+        if (count < k) {
+            sorted.assign(predicted.begin(), predicted.end());
+            std::nth_element(sorted.begin(), sorted.begin() + (count - 1), sorted.end());
+            bar = sorted[count - 1];
+        }
+        for (Py_ssize_t j = 0; j < k && static_cast<int>(first.size()) < count; ++j)
+            if (predicted[j] <= bar) first.push_back(static_cast<int32_t>(j));
     }
-    Py_ssize_t n = std::min<Py_ssize_t>(count, k);
-    auto first = [this](int32_t a, int32_t b) { return predicted[a] < predicted[b]; };
-    if (n < k) std::nth_element(order.begin(), order.begin() + n, order.end(), first);
-    std::sort(order.begin(), order.begin() + n, first);
     vertices.clear();
-    for (Py_ssize_t r = 0; r < n; ++r) {
-        const int64_t *pair = faces + 2 * order[r];
+    for (int32_t ranked : first) {
+        const int64_t *pair = faces + 2 * ranked;
         const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
         const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
         const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
