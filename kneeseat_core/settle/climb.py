@@ -336,9 +336,10 @@ class _Climb:
         order = np.argsort(-promise, kind='stable')[:tries]
         moves = moves[order]
         targets = s.laterals(here.pose, moves, self.arm)
-        # one Newton step of the lift that gains: no more than the travel needed (the
-        # objective is concave along Δ), so a contact short of it refutes the move
-        needed = self.objective.first_lifts(targets, here.pose, gain)
+        # one Newton step of the lift that gains: no more than the lift needed (the
+        # objective is concave along Δ); a place stands the standoff short of its travel,
+        # so a contact short of the two together refutes the move
+        needed = self.objective.first_lifts(targets, here.pose, gain) + self.standoff
         open_ = np.isfinite(needed)
         pool = self.pool.model
         if len(pool.gaps) and open_.any():
