@@ -223,10 +223,9 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
     centre = free[:3, :3] @ moving.centroid + free[:3, 3]
     probes = np.array(lateral_poses(free, push, centre, seed, 24, 3e-4, 0.5))
     lifts = np.random.default_rng(seed).choice([2.5e-6, 2.5e-5, 1e-4], len(probes))
-    # every pair a witness: ranked by their gaps at the contact pose, each probe's move nil
-    features = (touch.gaps, np.zeros((len(touch.gaps), 3)), touch.faces)
-    refuted = sweep.refuted(probes, lifts, features, np.zeros((len(probes), 3)),
-                            len(touch.gaps), 0.0, 1e-3)
+    # every pair a witness of every probe
+    pairs = np.broadcast_to(touch.faces, (len(probes),) + touch.faces.shape)
+    refuted = sweep.refuted(probes, lifts, pairs, 0.0, 1e-3)
     for probe, lift, no in zip(probes, lifts, refuted):
         whole = sweep.touch(probe, 1e-3, 3e-4)
         short = sweep.touch(probe, 1e-3, 3e-4, short_of=lift)
@@ -281,21 +280,18 @@ def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
         _sweep.travels(fixed, moving, np.eye(3), 0.0, 0.0, 1.0)
     with pytest.raises(ValueError):
         _sweep.travels(fixed, moving, np.eye(4)[None], -1.0, 0.0, 1.0)
-    pose, one = np.eye(4)[None], np.zeros(1)
-    features = (np.zeros(1), np.zeros((1, 3)), np.array([[0, 0]]))
+    pose, one, pair = np.eye(4)[None], np.zeros(1), np.array([[[0, 0]]])
+    assert _sweep.refuted(fixed, moving, pose, one, pair, 0.0, 0.0) in (b'\x00', b'\x01')
     with pytest.raises(ValueError):       # a face the body does not have
-        _sweep.refuted(fixed, moving, pose, one, features[0], features[1], np.array([[0, 99]]),
-                       np.zeros((1, 3)), 1, 0.0, 0.0)
+        _sweep.refuted(fixed, moving, pose, one, np.array([[[0, 99]]]), 0.0, 0.0)
     with pytest.raises(ValueError):       # a needed travel too many
-        _sweep.refuted(fixed, moving, pose, np.zeros(2), *features, np.zeros((1, 3)), 1, 0.0,
-                       0.0)
-    with pytest.raises(ValueError):       # slopes of the wrong shape
-        _sweep.refuted(fixed, moving, pose, one, features[0], np.zeros(2), features[2],
-                       np.zeros((1, 3)), 1, 0.0, 0.0)
+        _sweep.refuted(fixed, moving, pose, np.zeros(2), pair, 0.0, 0.0)
+    with pytest.raises(ValueError):       # pairs of the wrong shape
+        _sweep.refuted(fixed, moving, pose, one, np.zeros((1, 3), dtype=np.int64), 0.0, 0.0)
     with pytest.raises(ValueError):       # a negative depth
-        _sweep.refuted(fixed, moving, pose, one, *features, np.zeros((1, 3)), 1, 0.0, -1.0)
+        _sweep.refuted(fixed, moving, pose, one, pair, 0.0, -1.0)
     with pytest.raises(TypeError):
-        _sweep.refuted(fixed, moving, pose, 'x', *features, np.zeros((1, 3)), 1, 0.0, 0.0)
+        _sweep.refuted(fixed, moving, pose, 'x', pair, 0.0, 0.0)
     with pytest.raises(ValueError):
         _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, math.nan)
 

@@ -763,7 +763,7 @@ double vertex_gap(Sweep &s, int32_t i, double behind, double best, std::vector<i
     return best;
 }
 
-// A buffer `what` of `count` float64 (or int64 where `format` is "q"), held on success;
+// A buffer `what` of `count` 8-byte items of `format` ("d" or "q"), held on success;
 // false with the error set otherwise.
 bool get_sized(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t count, const char *what) {
     if (!get_buffer(obj, &view, format, 8, what)) return false;
@@ -773,43 +773,17 @@ bool get_sized(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t co
     return false;
 }
 
-// The witnesses of one pose: the `count` pairs of the ranking whose predicted gap after
-// the pose's move is least, then the vertices of their moving triangles; true as soon as
-// one closes short of `needed` (least gap of a pair over the overlap of its shadows, over
-// pairs not wholly `behind` below; a vertex onto any front face at most `deepest` below it).
-struct Witnesses {
-    const double *gaps, *slopes;
-    const int64_t *faces;
-    Py_ssize_t k;
-    int count;
-    double behind, deepest;
-    std::vector<double> predicted, sorted;
-    std::vector<int32_t> first, vertices, stack;    // first: the pairs predicted to close first
-
-    bool refute(Sweep &s, const double *move, double needed);
-};
-
-bool Witnesses::refute(Sweep &s, const double *move, double needed) {
+// Whether a witness of the sweep's pose closes short of `needed`: one of its `k` pairs of
+// triangles (moving face, fixed face: the least gap over the overlap of their shadows, a
+// pair lying wholly more than `behind` below not counting), or else a vertex of their
+// moving triangles onto whatever front face of the fixed body lies under it (a face more
+// than `deepest` above the vertex not counting). Each is asked in turn until one is short.
+bool witness_short(Sweep &s, const int64_t *pairs, Py_ssize_t k, double needed, double behind,
+                   double deepest, std::vector<int32_t> &vertices, std::vector<int32_t> &stack) {
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
-    // the `count` least predicted gaps: the count-th least found on a copy, then every pair
-    // at or below it, in the features' order, up to `count`
-    predicted.resize(k);
-    for (Py_ssize_t j = 0; j < k; ++j)
-        predicted[j] = gaps[j] + move[0] * slopes[3 * j] + move[1] * slopes[3 * j + 1] + move[2] * slopes[3 * j + 2];
-    first.clear();
-    if (count > 0 && k > 0) {
-        double bar = kInf;
-        if (count < k) {
-            sorted.assign(predicted.begin(), predicted.end());
-            std::nth_element(sorted.begin(), sorted.begin() + (count - 1), sorted.end());
-            bar = sorted[count - 1];
-        }
-        for (Py_ssize_t j = 0; j < k && static_cast<int>(first.size()) < count; ++j)
-            if (predicted[j] <= bar) first.push_back(static_cast<int32_t>(j));
-    }
     vertices.clear();
-    for (int32_t ranked : first) {
-        const int64_t *pair = faces + 2 * ranked;
+    for (Py_ssize_t r = 0; r < k; ++r) {
+        const int64_t *pair = pairs + 2 * r;
         const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
         const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
         const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
@@ -829,20 +803,18 @@ bool Witnesses::refute(Sweep &s, const double *move, double needed) {
     return false;
 }
 
-// refuted(fixed_view, moving_view, poses (m, 4, 4), needed (m,), gaps (k,), slopes (k, 3),
-// faces (k, 2) of (moving face, fixed face), moves (m, 3), count, behind, deepest)
-//   -> (m,) int8: 1 where a witness of the pose closes short of its needed travel. The
-//   features (gaps, slopes over a lateral move, their triangles) rank a pose's pairs by the
-//   gap they predict after its move; see Witnesses.
+// refuted(fixed_view, moving_view, poses (m, 4, 4), needed (m,), pairs (m, k, 2) of (moving
+// face, fixed face), behind, deepest) -> (m,) int8: 1 where a witness of the pose (its row of
+// pairs, then their moving triangles' vertices; see witness_short) closes short of its
+// needed travel
 PyObject *refuted(PyObject *, PyObject *args) {
-    PyObject *fo, *mo, *po, *no, *go, *so, *fco, *mvo;
-    Witnesses w;
+    PyObject *fo, *mo, *po, *no, *qo;
+    double behind, deepest;
     Sweep s;
-    if (!PyArg_ParseTuple(args, "O!O!OOOOOOidd", &ViewType, &fo, &ViewType, &mo, &po, &no, &go, &so,
-                          &fco, &mvo, &w.count, &w.behind, &w.deepest))
+    if (!PyArg_ParseTuple(args, "O!O!OOOdd", &ViewType, &fo, &ViewType, &mo, &po, &no, &qo, &behind, &deepest))
         return nullptr;
     if (!take_views(fo, mo, s)) return nullptr;
-    Py_buffer bufs[6];
+    Py_buffer bufs[3];
     int held = 0;
     bool ok = get_buffer(po, &bufs[0], "d", 8, "poses") && ++held;
     Py_ssize_t m = ok ? bufs[0].len / 128 : 0;
@@ -851,43 +823,37 @@ PyObject *refuted(PyObject *, PyObject *args) {
         ok = false;
     }
     ok = ok && get_sized(no, bufs[1], "d", m, "needed") && ++held;
-    ok = ok && get_buffer(go, &bufs[2], "d", 8, "gaps") && ++held;
-    Py_ssize_t k = ok ? bufs[2].len / 8 : 0;
-    ok = ok && get_sized(so, bufs[3], "d", 3 * k, "slopes") && ++held;
-    ok = ok && get_sized(fco, bufs[4], "q", 2 * k, "faces") && ++held;
-    ok = ok && get_sized(mvo, bufs[5], "d", 3 * m, "moves") && ++held;
+    ok = ok && get_buffer(qo, &bufs[2], "q", 8, "pairs") && ++held;
+    Py_ssize_t k = ok && m > 0 ? bufs[2].len / (16 * m) : 0;
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
-    const int64_t *faces = ok ? static_cast<const int64_t *>(bufs[4].buf) : nullptr;
+    const int64_t *pairs = ok ? static_cast<const int64_t *>(bufs[2].buf) : nullptr;
+    if (ok && bufs[2].len != 16 * m * k) ok = false;
     Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
-    for (Py_ssize_t j = 0; ok && j < k; ++j)
-        ok = faces[2 * j] >= 0 && faces[2 * j] < nm && faces[2 * j + 1] >= 0 && faces[2 * j + 1] < nf;
-    if (ok && (w.count < 0 || !(w.behind >= 0.0) || !(w.deepest >= 0.0))) ok = false;
+    for (Py_ssize_t j = 0; ok && j < m * k; ++j)
+        ok = pairs[2 * j] >= 0 && pairs[2 * j] < nm && pairs[2 * j + 1] >= 0 && pairs[2 * j + 1] < nf;
+    if (ok && (!(behind >= 0.0) || !(deepest >= 0.0))) ok = false;
     if (!ok) {
         if (!PyErr_Occurred())
-            PyErr_SetString(PyExc_ValueError, "refuted: poses (m, 4, 4), needed (m,), gaps (k,), slopes (k, 3), "
-                                              "faces (k, 2) of face indices, moves (m, 3), count, behind and deepest not negative");
+            PyErr_SetString(PyExc_ValueError, "refuted: poses (m, 4, 4), needed (m,), pairs (m, k, 2) of face "
+                                              "indices, behind and deepest not negative");
         for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
         return nullptr;
     }
-    w.gaps = static_cast<const double *>(bufs[2].buf);
-    w.slopes = static_cast<const double *>(bufs[3].buf);
-    w.faces = faces;
-    w.k = k;
     const double *p = static_cast<const double *>(bufs[0].buf), *needed = static_cast<const double *>(bufs[1].buf);
-    const double *moves = static_cast<const double *>(bufs[5].buf);
     std::vector<int8_t> out(m, 0);
+    std::vector<int32_t> vertices, stack;
     for (Py_ssize_t i = 0; i < m; ++i) {
         s.place(p + 16 * i);
-        out[i] = w.refute(s, moves + 3 * i, needed[i]) ? 1 : 0;
+        out[i] = witness_short(s, pairs + 2 * k * i, k, needed[i], behind, deepest, vertices, stack) ? 1 : 0;
     }
     for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
-    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(out.data()), m);
+    static const char nothing = 0;
+    return PyBytes_FromStringAndSize(m ? reinterpret_cast<const char *>(out.data()) : &nothing, m);
 }
 
 PyMethodDef module_methods[] = {
     {"refuted", refuted, METH_VARARGS,
-     "refuted(fixed_view, moving_view, poses, needed, gaps, slopes, faces, moves, count, behind, deepest) "
-     "-> where a witness closes short of the needed travel"},
+     "refuted(fixed_view, moving_view, poses, needed, pairs, behind, deepest) -> where a witness closes short"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

@@ -207,31 +207,24 @@ class SweepPair:
                      f['point'].copy(), f['room'].copy(), f['kind'].copy(),
                      np.column_stack([f['moving_face'], f['fixed_face']]))
 
-    def refuted(self, poses: Floats, needed: Floats, features: tuple[Floats, Floats, Ints],
-                moves: Floats, count: int, behind: float, deepest: float) -> np.ndarray:
+    def refuted(self, poses: Floats, needed: Floats, pairs: Ints, behind: float,
+                deepest: float) -> np.ndarray:
         """(m,) True where a contact with the body at each of `poses` (m, 4, 4) closes
         short of the travel along Δ it `needed` (m,): the travel from that pose is no
         longer than any contact's gap, so the pose cannot go that far (its witness).
 
-        The witnesses of a pose: of the pairs of triangles of `features` (gaps (k,), their
-        slopes (k, 3) over a lateral move and the pairs (k, 2) of (moving face, fixed
-        face)), the `count` whose gap after the pose's move `moves` (m, 3) is predicted
-        least (the least gap over the overlap of their shadows, a pair lying wholly more
-        than `behind` below the pose not counting); then the vertices of their moving
-        triangles, each onto whatever face of the fixed body lies under it (a face more
-        than `deepest` above a vertex not counting). A pose's witnesses are asked in turn
-        until one closes short."""
+        The witnesses of a pose: its row of `pairs` (m, k, 2) of triangles (moving face,
+        fixed face; the least gap over the overlap of their shadows, a pair lying wholly
+        more than `behind` below the pose not counting), then the vertices of their moving
+        triangles, each onto whatever face of the fixed body lies under it (a face more than
+        `deepest` above a vertex not counting), asked in turn until one closes short."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         if len(poses) == 0:
             return np.zeros(0, dtype=bool)
-        gaps, slopes, faces = features
         raw = _sweep.refuted(self._fixed_view, self._moving_view(poses[0]), poses,
                              np.ascontiguousarray(needed, dtype=np.float64),
-                             np.ascontiguousarray(gaps, dtype=np.float64),
-                             np.ascontiguousarray(slopes, dtype=np.float64),
-                             np.ascontiguousarray(faces, dtype=np.int64),
-                             np.ascontiguousarray(moves, dtype=np.float64),
-                             int(count), float(behind), float(deepest))
+                             np.ascontiguousarray(pairs, dtype=np.int64), float(behind),
+                             float(deepest))
         return np.frombuffer(raw, dtype=np.int8).astype(bool)
 
 

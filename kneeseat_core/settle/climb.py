@@ -346,10 +346,9 @@ class _Climb:
             # penetration from a lateral move of length l is at most its steepest slope
             # times l: a vertex that far above a face is through it
             deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
-            open_[open_] = ~sweep.refuted(
-                targets[open_], needed[open_], (pool.gaps, pool.slopes, pool.faces),
-                moves[open_] + (here.state - self.pool.state), t.witnesses, self.standoff,
-                deepest)
+            pairs = pool.witnesses(moves[open_] + (here.state - self.pool.state), t.witnesses)
+            open_[open_] = ~sweep.refuted(targets[open_], needed[open_], pairs, self.standoff,
+                                          deepest)
         for i in np.flatnonzero(open_):
             window = t.pool_window_res if self._beyond_pool(self.state_of(targets[i])) else None
             place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]))
