@@ -21,7 +21,7 @@ setup(
     # climb's small linear program (kneeseat_core/settle/model.py) and the ligaments' rates
     # at many poses (kneeseat_core/ligaments.py)
     ext_modules=[Extension(name, [source], extra_compile_args=['-O3', '-std=c++17'],
-                           language='c++')
+                           depends=['kneeseat_core/_buffers.h'], language='c++')
                  for name, source in (('kneeseat_core.meshes._sweep',
                                        'kneeseat_core/meshes/_sweep.cpp'),
                                       ('kneeseat_core.settle._simplex',

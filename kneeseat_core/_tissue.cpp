@@ -17,16 +17,16 @@
 #include <cstring>
 #include <vector>
 
+#include "_buffers.h"
+
 namespace {
 
-// a C-contiguous buffer of `count` 8-byte items of `format` ("d" or "q"), else an error set
+// a C-contiguous buffer of `count` 8-byte items of `format` ("d" or "q"; count < 0: any),
+// else a ValueError set
 bool take(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t count, const char *what) {
-    if (PyObject_GetBuffer(obj, &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return false;
-    const char *f = view.format ? view.format : "B";
-    if (*f == '<' || *f == '=' || *f == '@') ++f;
-    bool same = std::strcmp(f, format) == 0 || (*format == 'q' && std::strcmp(f, "l") == 0);
-    if (view.itemsize == 8 && same && (count < 0 || view.len == 8 * count)) return true;
-    PyErr_Format(PyExc_ValueError, "pushes: %s has the wrong type or shape", what);
+    if (!kneeseat::get_buffer(obj, &view, format, 8, what, PyExc_ValueError)) return false;
+    if (count < 0 || view.len == 8 * count) return true;
+    PyErr_Format(PyExc_ValueError, "pushes: %s has the wrong shape", what);
     PyBuffer_Release(&view);
     return false;
 }

@@ -34,6 +34,8 @@
 #include <limits>
 #include <vector>
 
+#include "../_buffers.h"
+
 namespace {
 
 constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -563,21 +565,7 @@ struct PyView {
 PyTypeObject BodyType = {PyVarObject_HEAD_INIT(nullptr, 0)};
 PyTypeObject ViewType = {PyVarObject_HEAD_INIT(nullptr, 0)};
 
-// a C-contiguous buffer of `count` items of `format` ("d", "q" or "b"), else a TypeError
-bool get_buffer(PyObject *obj, Py_buffer *view, const char *format, Py_ssize_t itemsize,
-                const char *what) {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return false;
-    const char *f = view->format ? view->format : "B";
-    if (*f == '<' || *f == '=' || *f == '@') ++f;
-    bool ok = view->itemsize == itemsize &&
-              (std::strcmp(f, format) == 0 || (itemsize == 8 && *format == 'q' && std::strcmp(f, "l") == 0));
-    if (!ok) {
-        PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous buffer of format '%s'", what, format);
-        PyBuffer_Release(view);
-        return false;
-    }
-    return true;
-}
+using kneeseat::get_buffer;
 
 void body_dealloc(PyBody *self) {
     delete self->body;

@@ -12,6 +12,8 @@
 #include <cstring>
 #include <vector>
 
+#include "../_buffers.h"
+
 namespace {
 
 constexpr int kMaxPivots = 200;     // far more than a few columns need; a cap against a bad tableau
@@ -61,15 +63,7 @@ void solve(std::vector<double> &t, int m, int n, std::vector<double> &v) {
 }
 
 bool get_doubles(PyObject *obj, Py_buffer *view, const char *what) {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return false;
-    const char *f = view->format ? view->format : "B";
-    if (*f == '<' || *f == '=' || *f == '@') ++f;
-    if (view->itemsize != 8 || std::strcmp(f, "d") != 0) {
-        PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous float64 buffer", what);
-        PyBuffer_Release(view);
-        return false;
-    }
-    return true;
+    return kneeseat::get_buffer(obj, view, "d", 8, what);
 }
 
 // maximise(a (m, n), b (m,), cost (n,)) -> v (n,) as bytes
