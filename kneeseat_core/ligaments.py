@@ -39,8 +39,8 @@ from . import _tissue
 from .errors import ConfigError
 from .typed import Bools, Floats, Ints, Pose
 
-__all__ = ['DEFAULT_TRANSITION_STRAIN', 'Fibre', 'LigamentSet', 'Tissue', 'fibre_force',
-           'fibre_energy', 'load_ligaments', 'parse_ligaments']
+__all__ = ['DEFAULT_TRANSITION_STRAIN', 'Fibre', 'LigamentSet', 'Tissue', 'TissueLayout',
+           'fibre_force', 'fibre_energy', 'load_ligaments', 'parse_ligaments']
 
 DEFAULT_TRANSITION_STRAIN = 0.06      # the OpenSim-JAM class default (Blankevoort 1991)
 
@@ -152,31 +152,59 @@ class LigamentSet:
         """The fibres acting on `body` (`acting_on` the bodies in `placed`), ready for one
         settle: their points on `body` kept in its frame, every other point placed once in
         the reference frame by `placed` (body name -> (4, 4) pose). None when no fibre acts."""
-        fibres = self.acting_on(body, tuple(placed))
+        layout = self.layout(body, tuple(placed))
+        return None if layout is None else layout.place(placed)
+
+    def layout(self, body: str, placed: Sequence[str]) -> TissueLayout | None:
+        """The fibres acting on `body` while the bodies `placed` are where they are, laid
+        out once for the settles of many cells (`TissueLayout.place`); None when no fibre
+        acts."""
+        fibres = self.acting_on(body, placed)
         if not fibres:
             return None
-        local: list[Floats] = []
-        moving: list[bool] = []
+        owners: list[str] = []
+        points: list[Floats] = []
         seg_a: list[int] = []
         seg_b: list[int] = []
         seg_fibre: list[int] = []
         for i, fibre in enumerate(fibres):
-            start = len(local)
-            for b, p in zip(fibre.bodies, fibre.points):
-                if b == body:
-                    local.append(np.asarray(p, dtype=np.float64))
-                    moving.append(True)
-                else:
-                    pose = placed[b]
-                    local.append(pose[:3, :3] @ p + pose[:3, 3])
-                    moving.append(False)
+            start = len(points)
+            owners.extend(fibre.bodies)
+            points.extend(np.asarray(p, dtype=np.float64) if b == body else p
+                          for b, p in zip(fibre.bodies, fibre.points))
             count = len(fibre.points)
             seg_a.extend(range(start, start + count - 1))
             seg_b.extend(range(start + 1, start + count))
             seg_fibre.extend([i] * (count - 1))
+        return TissueLayout(body, fibres, tuple(owners), tuple(points), np.array(seg_a),
+                            np.array(seg_b), np.array(seg_fibre))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TissueLayout:
+    """The fibres acting on one body, laid out once (`LigamentSet.layout`): each point's
+    body and coordinates there, the segments as point indices and the fibre of each. A
+    sweep places it at every cell of a chain, where only the other bodies' poses change."""
+
+    body: str
+    fibres: tuple[Fibre, ...]
+    owners: tuple[str, ...]      # (n,) the body each point is fixed on
+    points: tuple[Floats, ...]   # (n,) (3,) m, each in its body's frame
+    seg_a: Ints                  # (s,) first point of each straight segment
+    seg_b: Ints                  # (s,) second point
+    seg_fibre: Ints              # (s,) the fibre each segment belongs to
+
+    def place(self, placed: Mapping[str, Pose]) -> Tissue:
+        """The tissue with every body other than the moving one at its pose in `placed`
+        (body name -> (4, 4) pose in the reference frame)."""
+        body = self.body
+        local = [p if b == body else placed[b][:3, :3] @ p + placed[b][:3, 3]
+                 for b, p in zip(self.owners, self.points)]
+        fibres = self.fibres
         return Tissue.of(tuple(f.name for f in fibres), tuple(f.bundle for f in fibres),
-                         np.array(local), np.array(moving), np.array(seg_a), np.array(seg_b),
-                         np.array(seg_fibre), np.array([f.slack_m for f in fibres]),
+                         np.array(local), np.array([b == body for b in self.owners]),
+                         self.seg_a, self.seg_b, self.seg_fibre,
+                         np.array([f.slack_m for f in fibres]),
                          np.array([f.stiffness_n for f in fibres]),
                          np.array([f.transition for f in fibres]))
 

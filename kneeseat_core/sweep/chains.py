@@ -18,14 +18,14 @@ Workers rebuild the rigid bodies once per process from a small picklable `SceneS
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import time
 
 import numpy as np
 
 from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import carried, pose_from
-from kneeseat_core.ligaments import LigamentSet, Tissue
+from kneeseat_core.ligaments import LigamentSet, Tissue, TissueLayout
 from kneeseat_core.params import SettleParams
 from kneeseat_core.settle import settle
 from kneeseat_core.status import Status
@@ -66,12 +66,24 @@ class SoftTissue:
     reference: str
     placed: tuple[str, ...]                 # the settled bodies its fibres reach
     placed_poses: Floats                    # (n, len(placed), 4, 4) their poses per cell
+    # the fibres laid out once for the chain, and, where only the reference holds them,
+    # the tissue itself (the same at every cell)
+    _layout: TissueLayout | None = field(default=None, init=False, repr=False)
+    _still: Tissue | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        layout = self.ligaments.layout(self.body, (self.reference, *self.placed))
+        object.__setattr__(self, '_layout', layout)
+        if layout is not None and not self.placed:
+            object.__setattr__(self, '_still', layout.place({self.reference: np.eye(4)}))
 
     def at(self, i: int) -> Tissue | None:
         """The tissue at the chain's i-th cell."""
+        if self._layout is None or not self.placed:
+            return self._still
         poses = {self.reference: np.eye(4)}
         poses.update(zip(self.placed, self.placed_poses[i]))
-        return self.ligaments.tissue(self.body, poses)
+        return self._layout.place(poses)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
