@@ -27,7 +27,7 @@ from kneeseat_core.referee import Referee
 from kneeseat_core.referee.judge import Load
 from kneeseat_core.settle import settle, SettleParams
 from kneeseat_core.status import Status
-from kneeseat_core.sweep import build_table, InlineExecutor, summary_line
+from kneeseat_core.sweep import build_table, InlineExecutor, SoftTissue, summary_line
 
 BODIES = ['femur', 'tibia', 'patella']
 
@@ -104,6 +104,33 @@ def test_a_fibre_acts_on_the_body_it_joins_to_bodies_already_placed() -> None:
     assert [f.name for f in ligaments.acting_on('tibia', ['femur'])] == ['acl']
     assert [f.name for f in ligaments.acting_on('patella', ['femur', 'tibia'])] == ['pt', 'mpfl']
     assert [f.name for f in ligaments.acting_on('patella', ['femur'])] == ['mpfl']
+
+
+def test_a_chain_places_the_fibres_where_the_bodies_they_reach_rest_at_each_cell() -> None:
+    ligaments = parse_ligaments([
+        fibre('acl', [('femur', [0, 0, 0]), ('tibia', [0, -0.03, 0])], 0.03),
+        fibre('pt', [('patella', [0.05, 0, 0]), ('tibia', [0.04, -0.05, 0])], 0.05),
+        fibre('mpfl', [('femur', [0, 0, -0.04]), ('patella', [0.05, 0, -0.01])], 0.04)],
+        'test', BODIES)
+    tibia_rests = np.stack([pose_from(rotation_about(np.array([0.0, 0.0, 1.0]), 0.1 * i),
+                                      np.array([0.002 * i, -0.001, 0.0])) for i in range(3)])
+    patella = SoftTissue(ligaments, 'patella', 'femur', ('tibia',), tibia_rests[:, None])
+    pose = pose_from(rotation_about(np.array([1.0, 0.0, 0.0]), 0.05), np.array([0.0, 0.01, 0.0]))
+    for i, tibia in enumerate(tibia_rests):
+        # each fibre's length from its definition: the points placed by hand
+        pt = np.linalg.norm(pose[:3, :3] @ [0.05, 0, 0] + pose[:3, 3]
+                            - (tibia[:3, :3] @ [0.04, -0.05, 0] + tibia[:3, 3]))
+        mpfl = np.linalg.norm(pose[:3, :3] @ [0.05, 0, -0.01] + pose[:3, 3] - [0, 0, -0.04])
+        tissue = patella.at(i)
+        assert tissue is not None and tissue.names == ('pt', 'mpfl')
+        assert tissue.strains(pose) == pytest.approx([pt / 0.05 - 1, mpfl / 0.04 - 1], abs=1e-12)
+    # held by the reference alone, the tibia's fibres are the same at every cell
+    tibia = SoftTissue(ligaments, 'tibia', 'femur', (), np.zeros((3, 0, 4, 4)))
+    assert tibia.at(0) is tibia.at(2) is not None
+    acl = np.linalg.norm(pose[:3, :3] @ [0, -0.03, 0] + pose[:3, 3])
+    assert tibia.at(1).strains(pose) == pytest.approx([acl / 0.03 - 1], abs=1e-12)
+    alone = SoftTissue(ligaments, 'femur', 'femur', (), np.zeros((3, 0, 4, 4)))
+    assert alone.at(0) is None
 
 
 @pytest.mark.parametrize('items, message', [
