@@ -257,6 +257,34 @@ def test_a_refuted_probe_collides_for_python_fcl_on_the_total_knee() -> None:
     assert refuted >= probes // 2
 
 
+@pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
+def test_seeds_change_how_fast_a_touch_comes_never_what_it_returns() -> None:
+    """A touch seeded with pairs of triangles (those that close first, others that close
+    later, pairs whose shadows never meet) returns bit for bit what the unseeded touch
+    does, with fewer pairs evaluated when the seeds close first."""
+    fixed, moving, push, poses = total_knee(seed=5)
+    pair, sweep = CollisionPair(fixed, moving), SweepPair(fixed, moving, push)
+    rng = np.random.default_rng(11)
+    fewer = 0
+    for pose in (backed(pair, p, push) for p in poses):
+        plain = sweep.touch(pose, 1e-7, 3e-5)
+        first = plain.faces[np.argsort(plain.gaps, kind='stable')[:16]]
+        anywhere = np.column_stack([rng.integers(0, len(moving.faces), 16),
+                                    rng.integers(0, len(fixed.faces), 16)])
+        for seeds in (first, plain.faces[::-1], anywhere, np.zeros((0, 2), dtype=np.int64)):
+            seeded = sweep.touch(pose, 1e-7, 3e-5, seeds=seeds)
+            assert seeded.travel == plain.travel and seeded.buried == plain.buried
+            for name in ('gaps', 'normals', 'points', 'rooms', 'kinds', 'faces'):
+                assert np.array_equal(getattr(seeded, name), getattr(plain, name)), name
+        before = sweep.pairs
+        sweep.touch(pose, 1e-7, 3e-5)
+        unseeded = sweep.pairs - before
+        before = sweep.pairs
+        sweep.touch(pose, 1e-7, 3e-5, seeds=first)
+        fewer += sweep.pairs - before < unseeded
+    assert fewer >= len(poses) // 2
+
+
 def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
     """Wrong dtypes, shapes, indices or directions are a Python error, never a crash."""
     box = trimesh.creation.box()
@@ -294,6 +322,10 @@ def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
         _sweep.refuted(fixed, moving, pose, 'x', pair, 0.0, 0.0)
     with pytest.raises(ValueError):
         _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, math.nan)
+    with pytest.raises(ValueError):       # a seed face the body does not have
+        _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, 0.0, np.array([[0, 99]]))
+    with pytest.raises(TypeError):
+        _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, 0.0, np.zeros((1, 2)))
 
 
 def test_a_pose_measures_the_same_whatever_direction_was_asked_before() -> None:

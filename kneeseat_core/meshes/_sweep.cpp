@@ -307,7 +307,7 @@ struct Sweep {
     bool node_bounds(int a, int b, double &lo, double &hi);
     double cutoff() const { return std::min(best + window, limit); }
     void triangle_pair(int32_t moving_face, int32_t fixed_face);
-    void run();
+    void run(const int64_t *seeds = nullptr, Py_ssize_t count = 0);
 };
 
 void Sweep::place(const double *pose) {
@@ -502,12 +502,25 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     features.push_back(f);
 }
 
-void Sweep::run() {
+// `seeds`: pairs of triangles (moving face, fixed face, as given) likely to close first
+// from the pose. Their gaps bound the travel from above before the traversal starts, so it
+// prunes from its first visit; they are met again in the traversal, which alone records
+// features, so what a query returns is the same with or without them.
+void Sweep::run(const int64_t *seeds, Py_ssize_t count) {
     best = kInf;
     buried = false;
     features.clear();
     const Body &fb = *fixed->body, &mb = *moving->body;
     if (fb.nodes.empty() || mb.nodes.empty()) return;
+    const bool record = want_features;
+    want_features = false;
+    for (Py_ssize_t k = 0; k < count; ++k) {
+        int32_t j = mb.tree_index[seeds[2 * k]], i = fb.tree_index[seeds[2 * k + 1]];
+        if (fixed->takes_part(i) && moving->takes_part(j)) triangle_pair(j, i);
+        if (buried || best < short_of) break;
+    }
+    want_features = record;
+    if (buried || best < short_of) return;
     // depth first, the child pair with the lower bound first: the first leaves reached set
     // a tight cutoff early, and a stack costs far less than a heap per visit
     std::vector<Visit> &stack = visits;
@@ -646,11 +659,13 @@ bool take_views(PyObject *fo, PyObject *mo, Sweep &s) {
     return false;
 }
 
-bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window) {
-    PyObject *fo, *mo, *po;
-    if (!PyArg_ParseTuple(args, "O!O!Oddd|d", &ViewType, &fo, &ViewType, &mo, &po, &s.behind, &window,
-                          &s.limit, &s.short_of))
+bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window,
+                 PyObject **seeds = nullptr) {
+    PyObject *fo, *mo, *po, *so = Py_None;
+    if (!PyArg_ParseTuple(args, seeds ? "O!O!Oddd|dO" : "O!O!Oddd|d", &ViewType, &fo, &ViewType, &mo, &po,
+                          &s.behind, &window, &s.limit, &s.short_of, &so))
         return false;
+    if (seeds) *seeds = so;
     if (!take_views(fo, mo, s)) return false;
     if (!get_buffer(po, &poses, "d", 8, "poses")) return false;
     if (poses.len % 128 != 0 || !(s.behind >= 0.0) || !(window >= 0.0) || !(s.limit >= 0.0) ||
@@ -687,25 +702,48 @@ PyObject *travels(PyObject *, PyObject *args) {
                          reinterpret_cast<const char *>(buried.data()), count, s.pairs);
 }
 
-// contacts(fixed_view, moving_view, pose, behind, window, limit[, short_of])
+// contacts(fixed_view, moving_view, pose, behind, window, limit[, short_of[, seeds]])
 //   -> (travel, buried, features (bytes of Feature), pairs); a travel below short_of is
-//   where the search stopped (the travel is at most that, the features are partial)
+//   where the search stopped (the travel is at most that, the features are partial);
+//   seeds (k, 2) of (moving face, fixed face): pairs asked first (Sweep::run)
 PyObject *contacts(PyObject *, PyObject *args) {
     Sweep s;
-    Py_buffer poses;
-    Py_ssize_t count;
+    Py_buffer poses, seeds;
+    Py_ssize_t count, k = 0;
     double window;
-    if (!parse_sweep(args, s, poses, count, window)) return nullptr;
+    PyObject *so;
+    if (!parse_sweep(args, s, poses, count, window, &so)) return nullptr;
     if (count != 1) {
         PyBuffer_Release(&poses);
         PyErr_SetString(PyExc_ValueError, "contacts: one pose (4, 4)");
         return nullptr;
     }
+    const int64_t *pairs = nullptr;
+    if (so != Py_None) {
+        if (!get_buffer(so, &seeds, "q", 8, "seeds")) {
+            PyBuffer_Release(&poses);
+            return nullptr;
+        }
+        k = seeds.len / 16;
+        pairs = static_cast<const int64_t *>(seeds.buf);
+        bool ok = seeds.len % 16 == 0;
+        Py_ssize_t nm = static_cast<Py_ssize_t>(s.moving->body->tree_index.size());
+        Py_ssize_t nf = static_cast<Py_ssize_t>(s.fixed->body->tree_index.size());
+        for (Py_ssize_t j = 0; ok && j < k; ++j)
+            ok = pairs[2 * j] >= 0 && pairs[2 * j] < nm && pairs[2 * j + 1] >= 0 && pairs[2 * j + 1] < nf;
+        if (!ok) {
+            PyBuffer_Release(&poses);
+            PyBuffer_Release(&seeds);
+            PyErr_SetString(PyExc_ValueError, "contacts: seeds (k, 2) of face indices (moving, fixed)");
+            return nullptr;
+        }
+    }
     s.window = window;
     s.want_features = true;
     s.place(static_cast<const double *>(poses.buf));
-    s.run();
+    s.run(pairs, k);
     PyBuffer_Release(&poses);
+    if (pairs) PyBuffer_Release(&seeds);
     std::vector<Feature> kept;
     if (!s.buried)
         for (const Feature &f : s.features)
@@ -845,7 +883,7 @@ PyMethodDef module_methods[] = {
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,
-     "contacts(fixed_view, moving_view, pose, behind, window, limit[, short_of]) -> (travel, buried, features, pairs)"},
+     "contacts(fixed_view, moving_view, pose, behind, window, limit[, short_of[, seeds]]) -> (travel, buried, features, pairs)"},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_sweep",

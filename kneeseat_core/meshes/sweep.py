@@ -191,15 +191,19 @@ class SweepPair:
             np.frombuffer(buried, dtype=np.int8).astype(bool)
 
     def touch(self, pose: Pose, behind: float = 0.0, window: float = 0.0,
-              limit: float = math.inf, short_of: float = -math.inf) -> Touch:
+              limit: float = math.inf, short_of: float = -math.inf,
+              seeds: Ints | None = None) -> Touch:
         """The travel from `pose` (as `travels`) and the features closing within `window`
         beyond it; the search stops as soon as the travel is known to be below `short_of`
         (the travel returned is then a gap below it, the travel at most that, and the
-        features are partial)."""
+        features are partial). `seeds` (k, 2): pairs of triangles (moving face, fixed face)
+        likely to close first, asked before the search so that it prunes from the start;
+        they change how fast the answer comes, never the answer."""
         pose = np.ascontiguousarray(pose, dtype=np.float64)
         travel, buried, raw, pairs = _sweep.contacts(
             self._fixed_view, self._moving_view(pose), pose, float(behind), float(window),
-            _finite(limit), float(short_of))
+            _finite(limit), float(short_of),
+            None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64))
         self.queries += 1
         self.pairs += pairs
         f = np.frombuffer(raw, dtype=_FEATURE)

@@ -43,7 +43,7 @@ from kneeseat_core.errors import NoContactError
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.meshes.sweep import SweepPair, Touch
 from kneeseat_core.status import Status
-from kneeseat_core.typed import Bools, Floats, Pose
+from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .model import best_move, feature_slopes, Model, STEEPEST
 from .objective import Objective, objective_for
 from .search import Contacts, LOST_CONTACT, Search, SettleResult, translated
@@ -117,20 +117,22 @@ class _Climb:
 
     # ---- measuring -------------------------------------------------------------------
     def arrive(self, target: Pose, expected: float = 0.0, window_res: float | None = None,
-               short_of: float = -math.inf) -> _Place | _Short | None:
+               short_of: float = -math.inf, seeds: Ints | None = None
+               ) -> _Place | _Short | None:
         """The lateral pose `target` moved along Δ to contact: the travel measured exactly
         from it lowered by enough that the lowered pose is free (`expected`: the travel
         expected there, negative where `target` may be in collision), with the features
         within `window_res` resolutions (default: the tuning's window); None: no contact
         along Δ (the body slid off the fixed body); `_SHORT`: the travel is less than
-        `short_of` (the search stops as soon as a gap says so)."""
+        `short_of` (the search stops as soon as a gap says so). `seeds`: pairs of
+        triangles likely to close first there (`SweepPair.touch`)."""
         s, sweep = self.search, self.sweep
         window = (self.tuning.window_res if window_res is None else window_res) \
             * s.params.resolution_m
         behind = max(0.0, -2.0 * expected) + self.standoff
         limit = s.travel_limit(target)
         while True:
-            touch = sweep.touch(target, behind, window, limit + behind, short_of)
+            touch = sweep.touch(target, behind, window, limit + behind, short_of, seeds)
             if not touch.buried:
                 break
             if -behind < short_of:      # the travel is below -behind
@@ -342,16 +344,23 @@ class _Climb:
         needed = self.objective.first_lifts(targets, here.pose, gain) + self.standoff
         open_ = np.isfinite(needed)
         pool = self.pool.model
+        # the witnesses of each move still open: the pairs the pool says close first there
+        pairs: Ints | None = None
         if len(pool.gaps) and open_.any():
             # penetration from a lateral move of length l is at most its steepest slope
             # times l: a vertex that far above a face is through it
             deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
-            pairs = pool.witnesses(moves[open_] + (here.state - self.pool.state), t.witnesses)
-            open_[open_] = ~sweep.refuted(targets[open_], needed[open_], pairs, self.standoff,
-                                          deepest)
+            pairs = np.zeros((len(moves), min(t.witnesses, len(pool.gaps)), 2), dtype=np.int64)
+            pairs[open_] = pool.witnesses(moves[open_] + (here.state - self.pool.state),
+                                          t.witnesses)
+            open_[open_] = ~sweep.refuted(targets[open_], needed[open_], pairs[open_],
+                                          self.standoff, deepest)
         for i in np.flatnonzero(open_):
             window = t.pool_window_res if self._beyond_pool(self.state_of(targets[i])) else None
-            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]))
+            # the witnesses, none short of the travel needed, bound it from above: the
+            # search starts from them
+            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]),
+                                None if pairs is None else pairs[i])
             if place is None:
                 return (Status.LOST, LOST_CONTACT)
             if isinstance(place, _Place) and place.value - here.value >= gain:
