@@ -67,18 +67,19 @@ class SoftTissue:
     placed: tuple[str, ...]                 # the settled bodies its fibres reach
     placed_poses: Floats                    # (n, len(placed), 4, 4) their poses per cell
     # the fibres laid out once for the chain, and, where only the reference holds them,
-    # the tissue itself (the same at every cell)
+    # the tissue itself (the same at every cell): made at the first cell, in the worker
     _layout: TissueLayout | None = field(default=None, init=False, repr=False)
     _still: Tissue | None = field(default=None, init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        layout = self.ligaments.layout(self.body, (self.reference, *self.placed))
-        object.__setattr__(self, '_layout', layout)
-        if layout is not None and not self.placed:
-            object.__setattr__(self, '_still', layout.place({self.reference: np.eye(4)}))
+    _made: bool = field(default=False, init=False, repr=False)
 
     def at(self, i: int) -> Tissue | None:
         """The tissue at the chain's i-th cell."""
+        if not self._made:
+            layout = self.ligaments.layout(self.body, (self.reference, *self.placed))
+            object.__setattr__(self, '_layout', layout)
+            if layout is not None and not self.placed:
+                object.__setattr__(self, '_still', layout.place({self.reference: np.eye(4)}))
+            object.__setattr__(self, '_made', True)
         if self._layout is None or not self.placed:
             return self._still
         poses = {self.reference: np.eye(4)}
