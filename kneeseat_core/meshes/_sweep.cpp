@@ -659,6 +659,17 @@ bool take_views(PyObject *fo, PyObject *mo, Sweep &s) {
     return false;
 }
 
+// Whether each of `count` pairs (moving face, fixed face, as given) names faces the sweep's
+// bodies have.
+bool faces_of(const Sweep &s, const int64_t *pairs, Py_ssize_t count) {
+    const Py_ssize_t nm = static_cast<Py_ssize_t>(s.moving->body->tree_index.size());
+    const Py_ssize_t nf = static_cast<Py_ssize_t>(s.fixed->body->tree_index.size());
+    for (Py_ssize_t j = 0; j < count; ++j)
+        if (pairs[2 * j] < 0 || pairs[2 * j] >= nm || pairs[2 * j + 1] < 0 || pairs[2 * j + 1] >= nf)
+            return false;
+    return true;
+}
+
 bool parse_sweep(PyObject *args, Sweep &s, Py_buffer &poses, Py_ssize_t &count, double &window,
                  PyObject **seeds = nullptr) {
     PyObject *fo, *mo, *po, *so = Py_None;
@@ -726,12 +737,7 @@ PyObject *contacts(PyObject *, PyObject *args) {
         }
         k = seeds.len / 16;
         pairs = static_cast<const int64_t *>(seeds.buf);
-        bool ok = seeds.len % 16 == 0;
-        Py_ssize_t nm = static_cast<Py_ssize_t>(s.moving->body->tree_index.size());
-        Py_ssize_t nf = static_cast<Py_ssize_t>(s.fixed->body->tree_index.size());
-        for (Py_ssize_t j = 0; ok && j < k; ++j)
-            ok = pairs[2 * j] >= 0 && pairs[2 * j] < nm && pairs[2 * j + 1] >= 0 && pairs[2 * j + 1] < nf;
-        if (!ok) {
+        if (seeds.len % 16 != 0 || !faces_of(s, pairs, k)) {
             PyBuffer_Release(&poses);
             PyBuffer_Release(&seeds);
             PyErr_SetString(PyExc_ValueError, "contacts: seeds (k, 2) of face indices (moving, fixed)");
@@ -851,12 +857,9 @@ PyObject *refuted(PyObject *, PyObject *args) {
     ok = ok && get_sized(no, bufs[1], "d", m, "needed") && ++held;
     ok = ok && get_buffer(qo, &bufs[2], "q", 8, "pairs") && ++held;
     Py_ssize_t k = ok && m > 0 ? bufs[2].len / (16 * m) : 0;
-    const Body &mb = *s.moving->body, &fb = *s.fixed->body;
     const int64_t *pairs = ok ? static_cast<const int64_t *>(bufs[2].buf) : nullptr;
     if (ok && bufs[2].len != 16 * m * k) ok = false;
-    Py_ssize_t nm = static_cast<Py_ssize_t>(mb.tree_index.size()), nf = static_cast<Py_ssize_t>(fb.tree_index.size());
-    for (Py_ssize_t j = 0; ok && j < m * k; ++j)
-        ok = pairs[2 * j] >= 0 && pairs[2 * j] < nm && pairs[2 * j + 1] >= 0 && pairs[2 * j + 1] < nf;
+    ok = ok && faces_of(s, pairs, m * k);
     if (ok && (!(behind >= 0.0) || !(deepest >= 0.0))) ok = false;
     if (!ok) {
         if (!PyErr_Occurred())
