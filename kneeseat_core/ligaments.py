@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-import functools
 import hashlib
 import json
 import math
@@ -124,8 +123,9 @@ class LigamentSet:
     def acting_on(self, body: str, placed: Sequence[str]) -> tuple[Fibre, ...]:
         """The fibres that pull on `body` while the bodies `placed` are where they are: one
         end on `body`, the other on one of `placed` (the reference and the bodies settled
-        before it). A sweep asks it for every chain: the answer is kept."""
-        return _acting_on(self, body, frozenset(placed))
+        before it)."""
+        return tuple(f for f in self.fibres
+                     if body in f.ends and (f.ends - {body}) <= set(placed))
 
     def lengths(self, poses: Mapping[str, Pose]) -> Floats:
         """(f,) path length (m) of every fibre, each point moved by its body's pose
@@ -178,12 +178,6 @@ class LigamentSet:
             seg_fibre.extend([i] * (count - 1))
         return TissueLayout(body, fibres, tuple(owners), tuple(points), np.array(seg_a),
                             np.array(seg_b), np.array(seg_fibre))
-
-
-@functools.lru_cache(maxsize=64)
-def _acting_on(ligaments: LigamentSet, body: str, placed: frozenset[str]) -> tuple[Fibre, ...]:
-    """`LigamentSet.acting_on`, kept per set (by identity), body and placed bodies."""
-    return tuple(f for f in ligaments.fibres if body in f.ends and (f.ends - {body}) <= placed)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

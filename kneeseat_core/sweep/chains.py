@@ -18,7 +18,8 @@ Workers rebuild the rigid bodies once per process from a small picklable `SceneS
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 import time
 
 import numpy as np
@@ -55,7 +56,7 @@ class ChainJob:
         return None if self.soft_tissue is None else self.soft_tissue.at(i)
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(frozen=True, eq=False)
 class SoftTissue:
     """What a chain needs to place the ligaments of its body at each of its cells: the set,
     the body's name, and where the bodies its fibres pull from rest at each cell (the
@@ -66,25 +67,27 @@ class SoftTissue:
     reference: str
     placed: tuple[str, ...]                 # the settled bodies its fibres reach
     placed_poses: Floats                    # (n, len(placed), 4, 4) their poses per cell
-    # the fibres laid out once for the chain, and, where only the reference holds them,
-    # the tissue itself (the same at every cell): made at the first cell, in the worker
-    _layout: TissueLayout | None = field(default=None, init=False, repr=False)
-    _still: Tissue | None = field(default=None, init=False, repr=False)
-    _made: bool = field(default=False, init=False, repr=False)
 
     def at(self, i: int) -> Tissue | None:
         """The tissue at the chain's i-th cell."""
-        if not self._made:
-            layout = self.ligaments.layout(self.body, (self.reference, *self.placed))
-            object.__setattr__(self, '_layout', layout)
-            if layout is not None and not self.placed:
-                object.__setattr__(self, '_still', layout.place({self.reference: np.eye(4)}))
-            object.__setattr__(self, '_made', True)
         if self._layout is None or not self.placed:
             return self._still
         poses = {self.reference: np.eye(4)}
         poses.update(zip(self.placed, self.placed_poses[i]))
         return self._layout.place(poses)
+
+    @cached_property
+    def _layout(self) -> TissueLayout | None:
+        """The fibres laid out once for the chain (at its first cell, in the worker)."""
+        return self.ligaments.layout(self.body, (self.reference, *self.placed))
+
+    @cached_property
+    def _still(self) -> Tissue | None:
+        """Where only the reference holds the fibres, the tissue itself: the same at every
+        cell, built once."""
+        if self._layout is None or self.placed:
+            return None
+        return self._layout.place({self.reference: np.eye(4)})
 
 
 @dataclass(frozen=True, slots=True, eq=False)
