@@ -95,23 +95,24 @@ def test_tissue_gradient_is_the_energy_derivative() -> None:
             assert float(d_rotate[axis]) == pytest.approx(numeric, rel=1e-5, abs=1e-11)
 
 
-def test_a_fibre_acts_on_the_body_it_joins_to_bodies_already_placed() -> None:
-    ligaments = parse_ligaments([
+def three_fibres() -> LigamentSet:
+    """An ACL (femur-tibia), a patellar tendon (patella-tibia) and an MPFL (femur-patella)."""
+    return parse_ligaments([
         fibre('acl', [('femur', [0, 0, 0]), ('tibia', [0, -0.03, 0])], 0.03),
         fibre('pt', [('patella', [0.05, 0, 0]), ('tibia', [0.04, -0.05, 0])], 0.05),
         fibre('mpfl', [('femur', [0, 0, -0.04]), ('patella', [0.05, 0, -0.01])], 0.04)],
         'test', BODIES)
+
+
+def test_a_fibre_acts_on_the_body_it_joins_to_bodies_already_placed() -> None:
+    ligaments = three_fibres()
     assert [f.name for f in ligaments.acting_on('tibia', ['femur'])] == ['acl']
     assert [f.name for f in ligaments.acting_on('patella', ['femur', 'tibia'])] == ['pt', 'mpfl']
     assert [f.name for f in ligaments.acting_on('patella', ['femur'])] == ['mpfl']
 
 
 def test_a_chain_places_the_fibres_where_the_bodies_they_reach_rest_at_each_cell() -> None:
-    ligaments = parse_ligaments([
-        fibre('acl', [('femur', [0, 0, 0]), ('tibia', [0, -0.03, 0])], 0.03),
-        fibre('pt', [('patella', [0.05, 0, 0]), ('tibia', [0.04, -0.05, 0])], 0.05),
-        fibre('mpfl', [('femur', [0, 0, -0.04]), ('patella', [0.05, 0, -0.01])], 0.04)],
-        'test', BODIES)
+    ligaments = three_fibres()
     tibia_rests = np.stack([pose_from(rotation_about(np.array([0.0, 0.0, 1.0]), 0.1 * i),
                                       np.array([0.002 * i, -0.001, 0.0])) for i in range(3)])
     patella = SoftTissue(ligaments, 'patella', 'femur', ('tibia',), tibia_rests[:, None])
