@@ -24,6 +24,7 @@ from kneeseat_core.errors import (ConfigError, KneeseatError, MeshError, NonFini
                                   OutOfRangeError, TableError)
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat, quat_from_matrix, rotation_angle
 from kneeseat_core.files import file_sha256
+from kneeseat_core.status import converged_share
 from kneeseat_core.table import (arrays_sha256, PoseTable, read_table, SCHEMA, with_hash,
                                  write_table)
 from kneeseat_core.table.summary import CSV_COLUMNS, describe, export_csv, lookup_json
@@ -661,13 +662,20 @@ def test_describe_summarises_the_table(tmp_path: Path) -> None:
     assert 'varus:      -10 to 10 deg, step 1, 21 values' in text
     assert 'tibial_insert: frame tibial_insert_link' in text
     assert 'converged 100.0% (1911/1911), iterations median 10 max 70' in text
-    assert f'converged {100 * 45 / 91:.1f}% (945/1911)' in text
+    assert 'converged 49.4% (945/1911)' in text              # 49.45 %, rounded down
     assert '111111111111' in text and '1111111111111' not in text      # short mesh hash
     assert 'step_m=0.001' in text and 'collision_checks=1234' in text
     assert 'reference:  femoral_component (frame femur' in text
     rng = np.random.default_rng(1)
     assert 'non-uniform steps' in describe(make_table(nonuniform(-90, 0, 9, rng),
                                                       np.array([0.0])))
+
+
+def test_converged_share_says_100_percent_only_when_every_cell_converged() -> None:
+    assert converged_share(3822, 3822) == '100.0%'
+    assert converged_share(3821, 3822) == '99.9%'         # 99.97 %: not rounded up to 100.0
+    assert converged_share(1, 3822) == '<0.1%' and converged_share(0, 3822) == '0.0%'
+    assert converged_share(945, 1911) == '49.4%' and converged_share(0, 0) == '0.0%'
 
 
 def test_lookup_json(table: PoseTable) -> None:

@@ -16,6 +16,7 @@ from typing import Any, Callable, Iterator, TYPE_CHECKING
 
 from kneeseat_core.args import default_workers
 from kneeseat_core.errors import ConfigError
+from kneeseat_core.status import converged_share
 
 if TYPE_CHECKING:
     from kneeseat_core.args import Subcommands
@@ -61,23 +62,23 @@ def _cmd_build(args: argparse.Namespace) -> int:
         if not out.parent.is_dir():
             out.parent.mkdir(parents=True, exist_ok=True)
     executor, close = executor_for(args.workers, args.scheduler)
-    totals = {'cells': 0, 'converged': 0, 'wall_s': 0.0}
+    cells = converged = 0
+    wall_s = 0.0
     with _closing(close):
         for config, out in zip(loaded, outs):
             table = build_table(config, out, executor, show_progress=not args.quiet)
             print(summary_line(table, out))
             s = table.metadata['summary']
-            totals['cells'] += s['cells']
-            totals['converged'] += s['converged']
-            totals['wall_s'] += s['wall_s']
+            cells += int(s['cells'])
+            converged += int(s['converged'])
+            wall_s += float(s['wall_s'])
             for line in backed_out_lines(table):
                 print(line)
             for reason in table.metadata.get('failures', []):
                 print(f'  not converged: {reason}')
     if len(loaded) > 1:
-        print(f'all {len(loaded)} tables: {totals["cells"]} cells, '
-              f'{100 * totals["converged"] / max(totals["cells"], 1):.1f}% converged, '
-              f'{totals["wall_s"]:.1f} s wall')
+        print(f'all {len(loaded)} tables: {cells} cells, '
+              f'{converged_share(converged, cells)} converged, {wall_s:.1f} s wall')
     return 0
 
 

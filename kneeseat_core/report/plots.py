@@ -36,7 +36,7 @@ import numpy as np
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.files import atomic_write
 from kneeseat_core.geometry import matrix_from_quat, TOL
-from kneeseat_core.status import Status, STATUS_NAMES
+from kneeseat_core.status import converged_share, Status, STATUS_NAMES
 from kneeseat_core.table import mesh_entries, PoseTable
 from kneeseat_core.typed import Bools, Floats
 
@@ -198,8 +198,8 @@ def plot_convergence_map(table: PoseTable, out: Path) -> Path:
         _map_panel(ax, flexion_deg, varus_deg, cells[b], colour)
         missed = int((~converged[b]).sum())
         total += missed
-        share = 100.0 * converged[b].mean()
-        ax.set_title(f'{body}: {share:.1f}% converged ({missed} not)', fontsize=10)
+        share = converged_share(int(converged[b].sum()), converged[b].size)
+        ax.set_title(f'{body}: {share} converged ({missed} not)', fontsize=10)
         if b == 0:
             ax.set_ylabel('flexion [deg]')
     counts = {r: sum(1 for c in cells for v in c.values() if v == r) for r in reasons}

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import quat_from_matrix
 from kneeseat_core.knee import BodySpec, KneeConfig
-from kneeseat_core.status import Status, STATUS_NAMES
+from kneeseat_core.status import converged_share, Status, STATUS_NAMES
 from kneeseat_core.table import PoseTable, write_table
 from .continuity import continuity
 from .phases import sweep, SweepResult
@@ -153,12 +153,12 @@ def queries_per_cell(s: dict[str, Any]) -> str:
 def summary_line(table: PoseTable, out: Path) -> str:
     """One-paragraph summary of a finished build."""
     s = table.metadata['summary']
-    conv = s['converged'] / max(s['cells'], 1)
-    per_body = ', '.join(f'{name} {100 * table.converged[i].mean():.1f}%'
-                         for i, name in enumerate(table.bodies))
-    line = (f'{out}: {s["cells"]} cells, {100 * conv:.1f}% converged ({per_body}), '
-            f'{s["wall_s"]:.1f} s wall, {s["cells"] / max(s["wall_s"], 1e-9):.1f} cells/s, '
-            + queries_per_cell(s))
+    per_body = ', '.join(
+        f'{name} {converged_share(int(table.converged[i].sum()), table.converged[i].size)}'
+        for i, name in enumerate(table.bodies))
+    line = (f'{out}: {s["cells"]} cells, {converged_share(s["converged"], s["cells"])} '
+            f'converged ({per_body}), {s["wall_s"]:.1f} s wall, '
+            f'{s["cells"] / max(s["wall_s"], 1e-9):.1f} cells/s, ' + queries_per_cell(s))
     cont = table.metadata.get('continuity')
     if isinstance(cont, dict):
         over = sum(sum(b['pairs_over_bound'].values()) for b in cont['bodies'].values())

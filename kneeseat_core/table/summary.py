@@ -15,7 +15,7 @@ import numpy as np
 from kneeseat_core.errors import TableError
 from kneeseat_core.files import write_bytes
 from kneeseat_core.geometry import matrix_from_quat, TOL
-from kneeseat_core.status import Status, STATUS_NAMES
+from kneeseat_core.status import converged_share, Status, STATUS_NAMES
 from kneeseat_core.typed import Floats
 from .format import mesh_entries
 from .pose_table import Lookup, PoseTable
@@ -61,7 +61,8 @@ def describe(table: PoseTable) -> str:
     for b, body in enumerate(meta['bodies']):
         c = conv[b]
         lines.append(f'  {body["name"]}: frame {body["frame"]}, {_meshes_text(body)}')
-        lines.append(f'    converged {100.0 * c.mean():.1f}% ({int(c.sum())}/{c.size}), '
+        lines.append(f'    converged {converged_share(int(c.sum()), c.size)} '
+                     f'({int(c.sum())}/{c.size}), '
                      f'iterations median {float(np.median(iters[b])):g} max {int(iters[b].max())}')
         backed = _mapping(_mapping(meta.get('backed_out')).get(body['name']))
         if backed.get('cells'):
