@@ -14,15 +14,19 @@ settled once more from the cold start (the neutral pose backed off one step), an
 converged result seeds the next cell.
 
 Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`
-(`kneeseat_core.sweep.scene`).
+(`kneeseat_core.sweep.scene`). A process that runs chains keeps BLAS to one thread: a
+settle's linear algebra is on 3-vectors and small matrices, which BLAS threads never speed
+up, and between calls they spin on the cores the other workers need (on the default knee,
+14 % more CPU for the same table).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cache, cached_property
 import time
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import carried, pose_from
@@ -130,8 +134,15 @@ def cold_start(attitude: Floats, params: SettleParams) -> Pose:
     return pose_from(attitude, -params.step_m * np.asarray(params.push))
 
 
+@cache
+def _one_blas_thread() -> None:
+    """Keep this process's BLAS to one thread (module docstring), once."""
+    threadpool_limits(limits=1, user_api='blas')
+
+
 def run_chain(job: ChainJob) -> ChainResult:
     """Settle the cells of `job` in order (runs in a worker process)."""
+    _one_blas_thread()
     started = time.perf_counter()
     fixed, bodies = scene_bodies(job.scene)
     moving = bodies[job.body]
