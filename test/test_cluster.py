@@ -6,7 +6,8 @@ tests build the knee on the process pool once (a batch of two configs) and compa
 """
 from __future__ import annotations
 
-from concurrent.futures import Future
+from concurrent.futures import Future, ProcessPoolExecutor
+import multiprocessing
 import os
 from pathlib import Path
 import shutil
@@ -20,6 +21,7 @@ from typing import Any, Iterator
 from distributed import Client, KilledWorker, LocalCluster
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_info
 
 from kneeseat_core.knee import materialise_default_knee
 from kneeseat_core.cli import main
@@ -174,6 +176,28 @@ def spine_job(config: KneeConfig, scene: SceneSpec) -> ChainJob:
     start = pose_from(np.eye(3), -np.asarray(params[0].push) * config.settle.step_m)
     return ChainJob(scene, 0, ((0, 0), (1, 0), (2, 0)), attitudes, params, start, np.eye(3),
                     np.eye(4), np.eye(3))
+
+
+def blas_threads(info: list[dict[str, Any]]) -> set[int]:
+    """The thread counts of the BLAS libraries in a `threadpool_info()`."""
+    return {lib['num_threads'] for lib in info if lib['user_api'] == 'blas'}
+
+
+def test_a_worker_that_runs_a_chain_keeps_blas_to_one_thread(small_config: KneeConfig) -> None:
+    # OpenBLAS threads spin between a settle's small products on the cores the other
+    # workers need: a process that has run a chain uses one
+    scene = SceneSpec(str(small_config.reference.mesh), (str(small_config.bodies[0].mesh),),
+                      small_config.units,
+                      (file_sha256(small_config.reference.mesh),
+                       file_sha256(small_config.bodies[0].mesh)))
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) as pool:
+        pool.submit(exec, 'import numpy').result(timeout=DEADLINE_S)
+        before = blas_threads(pool.submit(threadpool_info).result(timeout=DEADLINE_S))
+        pool.submit(run_chain, spine_job(small_config, scene)).result(timeout=DEADLINE_S)
+        after = blas_threads(pool.submit(threadpool_info).result(timeout=DEADLINE_S))
+    assert after == {1}
+    if (os.cpu_count() or 1) > 1:
+        assert max(before) > 1          # a fresh worker had more: the limit is the chain's
 
 
 def test_workers_without_the_files_settle_from_shipped_bytes(
