@@ -24,6 +24,7 @@ rotation about an axis 7.6 us against 11.2 us.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -102,12 +103,25 @@ def rotation_about(axis: Vec3, angle_rad: float | Floats) -> Floats:
     Returns:
         (3, 3) for a scalar angle, (n, 3, 3) for an array of angles (Rodrigues' formula).
     """
-    k = np.asarray(axis, dtype=np.float64)
+    kx, kx2 = _cross_matrices(*(float(c) for c in np.asarray(axis, dtype=np.float64)))
     a = np.asarray(angle_rad, dtype=np.float64)
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     s, c = np.sin(a)[..., None, None], np.cos(a)[..., None, None]
-    out: Floats = np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+    out: Floats = _EYE3 + s * kx + (1.0 - c) * kx2
     return out
+
+
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+
+
+@lru_cache(maxsize=64)
+def _cross_matrices(x: float, y: float, z: float) -> tuple[Floats, Floats]:
+    """The cross-product matrix K of the axis (x, y, z) and K @ K, read-only: a settle turns
+    about one push many times."""
+    kx = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    kx2 = kx @ kx
+    kx.flags.writeable = kx2.flags.writeable = False
+    return kx, kx2
 
 
 def pose_from(rotation: Floats, translation: Floats) -> Pose:

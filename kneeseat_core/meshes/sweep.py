@@ -115,8 +115,8 @@ class SweepBody:
     def view(self, direction: Floats, side: int) -> _sweep.View:
         """The body seen along the unit `direction` (its own frame): `side` +1 for the
         moving body (its faces facing +direction take part), -1 for the fixed body."""
-        rounded = tuple(int(round(float(c) / _SAME_DIRECTION)) for c in direction)
-        key = (side, *rounded)
+        rounded = np.rint(np.asarray(direction, dtype=np.float64) / _SAME_DIRECTION)
+        key = (side, *(int(c) for c in rounded.tolist()))
         found = self._views.get(key)   # type: ignore[arg-type]
         if found is None:
             if len(self._views) >= _VIEWS_KEPT:

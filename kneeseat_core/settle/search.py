@@ -117,6 +117,8 @@ class Search:
     e1: Floats = field(init=False)
     e2: Floats = field(init=False)
     free: Floats = field(init=False)    # (3,) 1 for each free move coordinate (e1, e2, spin)
+    _anchor_centre: Floats = field(init=False, repr=False)   # the anchor's centroid
+    _anchor_turn: Floats = field(init=False, repr=False)     # (3, 3) its rotation, inverse
     iterations: int = 0
     started: float = field(default_factory=time.perf_counter)
     backed_out_m: float = 0.0
@@ -130,6 +132,8 @@ class Search:
         self.e1 = unit(axis - (axis @ self.push) * self.push, 'in-plane axis')
         self.free = np.array([0.0 if self.params.locked_slide is not None else 1.0, 1.0, 1.0])
         self.e2 = np.cross(self.push, self.e1)
+        self._anchor_centre = self.centre(self.anchor)
+        self._anchor_turn = self.anchor[:3, :3].T
 
     # ---- geometry ---------------------------------------------------------------------
     def depth(self, pose: Pose) -> float:
@@ -170,11 +174,12 @@ class Search:
 
     def offset(self, pose: Pose) -> tuple[Floats, float]:
         """Slide across Δ (e1, e2) of the centroid and spin about Δ (rad) from the anchor."""
-        d = self.centre(pose) - self.centre(self.anchor)
-        rel = pose[:3, :3] @ self.anchor[:3, :3].T
+        d = self.centre(pose) - self._anchor_centre
+        rel = pose[:3, :3] @ self._anchor_turn
         sin = 0.5 * np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0],
                               rel[1, 0] - rel[0, 1]]) @ self.push
-        spin = math.atan2(float(sin), 0.5 * (float(np.trace(rel)) - 1.0))
+        trace = float(rel[0, 0]) + float(rel[1, 1]) + float(rel[2, 2])
+        spin = math.atan2(float(sin), 0.5 * (trace - 1.0))
         return np.array([d @ self.e1, d @ self.e2]), spin
 
     def beyond_envelope(self, pose: Pose) -> str | None:
