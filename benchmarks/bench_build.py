@@ -29,6 +29,7 @@ import time
 
 import numpy as np
 
+from kneeseat_core.status import converged_share
 from kneeseat_core.table import read_table
 from machine import describe_machine, load_average
 
@@ -69,8 +70,8 @@ def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> d
         'knee': knee, 'workers': workers, 'wall_s': wall, 'sweep_s': summary['wall_s'],
         'cells': summary['cells'], 'cells_per_s': summary['cells'] / summary['wall_s'],
         'checks_per_cell': summary['collision_checks'] / summary['cells'],
-        'converged': 100.0 * conv.mean(),
-        'per_body': ', '.join(f'{n} {100.0 * conv[b].mean():.1f}%'
+        'converged': converged_share(int(conv.sum()), conv.size),
+        'per_body': ', '.join(f'{n} {converged_share(int(conv[b].sum()), conv[b].size)}'
                               for b, n in enumerate(table.bodies)),
         'peak_rss_mb': usage.ru_maxrss / 1024.0,      # Linux: kilobytes
         'cpu_s': usage.ru_utime + usage.ru_stime,
@@ -118,7 +119,7 @@ def main() -> int:
                 print(f'{knee:18s} workers {workers}: wall {row["wall_s"]:6.1f} s (sweep '
                       f'{row["sweep_s"]:.1f} s), {row["cells"]} cells, {row["cells_per_s"]:.1f}'
                       f' cells/s, {row["checks_per_cell"]:.0f} checks/cell, converged '
-                      f'{row["converged"]:.1f}% ({row["per_body"]}), peak RSS '
+                      f'{row["converged"]} ({row["per_body"]}), peak RSS '
                       f'{row["peak_rss_mb"]:.0f} MB, CPU {row["cpu_s"]:.0f} s; load '
                       f'{row["load_before"]} -> {row["load_after"]}', flush=True)
     for row in rows:
