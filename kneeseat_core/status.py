@@ -30,7 +30,7 @@ AT_REST = (Status.REST, Status.CONSTRAINED)
 
 def converged_share(converged: int, cells: int) -> str:
     """`converged` of `cells` as a percentage to a tenth, rounded down: "100.0%" only when
-    every cell converged (3819 of 3822 reads 99.9%, not 100.0%), "0.0%" only when none did."""
+    every cell converged (3821 of 3822 reads 99.9%, not 100.0%), "0.0%" only when none did."""
     if cells <= 0:
         return '0.0%'
     tenths = 1000 * converged // cells
