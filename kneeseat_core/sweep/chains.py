@@ -87,11 +87,9 @@ class SoftTissue:
 
     @cached_property
     def _still(self) -> Tissue | None:
-        """Where only the reference holds the fibres, the tissue itself: the same at every
-        cell, built once."""
-        if self._layout is None or self.placed:
-            return None
-        return self._layout.place({self.reference: np.eye(4)})
+        """Where only the reference holds the fibres (`at` asks only then), the tissue
+        itself: the same at every cell, built once."""
+        return None if self._layout is None else self._layout.place({self.reference: np.eye(4)})
 
 
 @dataclass(frozen=True, slots=True, eq=False)
