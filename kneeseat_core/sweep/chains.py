@@ -1,10 +1,13 @@
 """One chain of cells of one body, settled in order in a worker, each from its neighbour.
 
 A warm start keeps the neighbour's spin about the push and its position relative to the
-joint (both turned by the change of attitude) and, where the rest before the neighbour in
-the chain is known too, carries the change from that one to the neighbour on once more
-(rests move smoothly along a chain: on the total knee's ribs the start then lies a quarter
-as far from the rest); it is backed off one step along the push. Every
+joint (both turned by the change of attitude) and adds the change the rest is expected to
+make from the neighbour to the cell: where the neighbouring ribs (the same varus steps at
+the flexion values beside) are settled, the change of rest they made over the same varus
+step, the mean of the two where both are; else, where the rest before the neighbour in the
+chain is known, the change from that one to the neighbour once more (rests move smoothly
+along a chain: on the total knee's ribs the start then lies a quarter as far from the
+rest, and with the ribs beside it, about a sixth). It is backed off one step along the push. Every
 cell's search envelope is measured from the same place whatever the chain carried in: the
 body's rest at the centre cell carried to the cell's attitude (`carried`), or, for the
 centre cell itself and a body whose centre cell did not converge, the body as delivered
@@ -24,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cache, cached_property
 import time
+from typing import Sequence
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -37,7 +41,8 @@ from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .scene import scene_bodies, SceneSpec
 
-__all__ = ['ChainJob', 'SoftTissue', 'ChainResult', 'run_chain', 'warm_start', 'cold_start']
+__all__ = ['ChainJob', 'SoftTissue', 'ChainResult', 'run_chain', 'warm_start', 'cold_start',
+           'rest_change', 'mean_change']
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -54,10 +59,20 @@ class ChainJob:
     anchor: Pose                            # (4, 4) envelope anchor, carried to each cell
     anchor_attitude: Floats                 # (3, 3) attitude the anchor belongs to
     soft_tissue: SoftTissue | None = None   # the ligaments acting on the body, if any
+    # (n, 4, 4) per cell, the change of rest the ribs beside made from the cell before it
+    # (the chain's start for the first) to it (`rest_change`); NaN where none is known
+    beside: Floats | None = None
 
     def tissue(self, i: int) -> Tissue | None:
         """The ligaments acting on the body at the chain's i-th cell."""
         return None if self.soft_tissue is None else self.soft_tissue.at(i)
+
+    def change_beside(self, i: int) -> Pose | None:
+        """The change of rest the ribs beside made over the chain's i-th step, if known."""
+        if self.beside is None or not np.isfinite(self.beside[i, 0, 0]):
+            return None
+        change: Pose = self.beside[i]
+        return change
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,18 +125,39 @@ class ChainResult:
     fcl_checks: int = 0       # python-fcl queries (of `collision_checks`)
 
 
+def rest_change(older: Pose, newer: Pose) -> Pose:
+    """The change from the pose `older` to `newer` (both (4, 4), at one attitude): the turn
+    that takes one's orientation to the other's (left factor) and the shift of the origin."""
+    out: Pose = np.eye(4)
+    out[:3, :3] = newer[:3, :3] @ older[:3, :3].T
+    out[:3, 3] = newer[:3, 3] - older[:3, 3]
+    return out
+
+
+def mean_change(steps: Sequence[tuple[Pose, Floats, Pose, Floats]], attitude: Floats) -> Pose:
+    """The mean of the changes of rest over `steps` (each: the older rest and its attitude,
+    the newer rest and its attitude), each step's two rests carried to `attitude` first
+    (`rest_change`; the mean turn is made a rotation where it is applied, `warm_start`)."""
+    out: Pose = np.mean([rest_change(carried(older, older_attitude, attitude),
+                                     carried(newer, newer_attitude, attitude))
+                         for older, older_attitude, newer, newer_attitude in steps], axis=0)
+    return out
+
+
 def warm_start(previous: Pose, previous_attitude: Floats, attitude: Floats,
-               push: Floats, back_off_m: float, before: tuple[Pose, Floats] | None = None
-               ) -> Pose:
-    """Start pose at a new attitude from a neighbour's equilibrium (module docstring); with
-    the rest `before` it (pose, attitude) along the chain, the change from that one to the
-    neighbour's carried on once more."""
+               push: Floats, back_off_m: float, before: tuple[Pose, Floats] | None = None,
+               change: Pose | None = None) -> Pose:
+    """Start pose at a new attitude from a neighbour's equilibrium (module docstring): the
+    `change` expected from the neighbour to the cell (`rest_change`, at the cell's
+    attitude) added; or, with the rest `before` it (pose, attitude) along the chain, the
+    change from that one to the neighbour's carried on once more."""
     start = carried(previous, previous_attitude, attitude)
-    if before is not None:
-        older = carried(before[0], before[1], attitude)
-        start[:3, 3] += start[:3, 3] - older[:3, 3]
-        # the same turn again, made a rotation once more (the products drift off it)
-        u, _, vt = np.linalg.svd(start[:3, :3] @ older[:3, :3].T @ start[:3, :3])
+    if change is None and before is not None:
+        change = rest_change(carried(before[0], before[1], attitude), start)
+    if change is not None:
+        start[:3, 3] += change[:3, 3]
+        # the turn, made a rotation once more (a product or a mean drifts off one)
+        u, _, vt = np.linalg.svd(change[:3, :3] @ start[:3, :3])
         start[:3, :3] = u @ vt
     start[:3, 3] -= back_off_m * push
     return start
@@ -155,8 +191,11 @@ def run_chain(job: ChainJob) -> ChainResult:
     previous, previous_attitude = job.start, job.start_attitude
     before: tuple[Pose, Floats] | None = None
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
+        # the ribs beside changed over this step from the rest just before: only while
+        # `previous` is that rest
+        beside = job.change_beside(i) if i == 0 or converged[i - 1] else None
         start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
-                           params.step_m, before)
+                           params.step_m, before, beside)
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:

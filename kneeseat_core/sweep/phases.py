@@ -7,11 +7,15 @@ along chains of three kinds:
    settled outward from the centre, each cell from its neighbour's equilibrium, run in
    segments of `SPINE_SEGMENT` cells (each segment from the rest the last one ended on);
 3. a *rib* per (body, flexion value, side): the varus values settled outward from the spine
-   cell, each from its neighbour's equilibrium.
+   cell, each from its neighbour's equilibrium and the change of rest the ribs beside it
+   made over the same varus step. The ribs learn in rounds, so that the wait never grows
+   with the grid: every 16th rib from the centre first (from its own last change of rest),
+   then those halfway between them, learning from the two 8 steps away, then those
+   halfway again (4 steps away), and so on to the ribs next to them (`ribs_beside`).
 A chain runs as soon as the cells it starts from are settled (`sweep`): a rib as soon as
-its spine cell, the next spine segment as soon as the last one, so the ribs of the first
-flexion values keep every worker busy while the spine goes on, and no phase waits for
-another. Chains run on any `concurrent.futures.Executor`
+its spine cell and the ribs beside it, the next spine segment as soon as the last one, so
+the ribs of the first flexion values keep every worker busy while the spine goes on, and no
+phase waits for another. Chains run on any `concurrent.futures.Executor`
 (`kneeseat_core.sweep.executors`); a chain is the same computation whenever and wherever
 it runs, so the table does not depend on the order. A body whose attitude ignores varus
 (`varus_fraction: 0`, e.g. a patella) is settled on its spine only and copied across
@@ -50,10 +54,10 @@ from kneeseat_core.knee import KneeConfig, neutral_pose
 from kneeseat_core.meshes import check_mesh_files
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
-from .chains import ChainJob, ChainResult, cold_start, run_chain, SoftTissue
+from .chains import ChainJob, ChainResult, cold_start, mean_change, run_chain, SoftTissue
 from .scene import SceneSpec
 
-__all__ = ['SweepResult', 'sweep']
+__all__ = ['SweepResult', 'sweep', 'ribs_beside']
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -84,6 +88,27 @@ class SweepResult:
 def _outward(n: int, centre: int) -> tuple[list[int], list[int]]:
     """Indices from `centre` going up and going down (centre excluded)."""
     return list(range(centre + 1, n)), list(range(centre - 1, -1, -1))
+
+
+# A rib learns from ribs at most this many flexion steps away (a power of two): the change
+# of rest along varus stays alike that far (on the total knee's ribs, the mean of the ribs
+# 8 steps either side predicts the next rest with less than half the error of a rib's
+# own last change, 0.29 against 0.76 mm at the 90th percentile), and a rib waits for at most
+# log2(FARTHEST_BESIDE) + 1 rounds of ribs before it.
+FARTHEST_BESIDE = 8
+
+
+def ribs_beside(f: int, centre: int, count: int) -> list[int]:
+    """The flexion indices of the ribs that the rib at `f` (of `count`, the centre at
+    `centre`) waits for and learns from (module docstring): at a distance k from the
+    centre, the two ribs s steps either side, s the largest power of two that divides k;
+    none where s is beyond `FARTHEST_BESIDE` (the first round: the centre rib and every
+    2 * FARTHEST_BESIDE-th one)."""
+    k = abs(f - centre)
+    step = k & -k           # the lowest bit set
+    if k == 0 or step > FARTHEST_BESIDE:
+        return []
+    return [g for g in (f - step, f + step) if 0 <= g < count]
 
 
 # Cells per segment of a spine: short, so that the ribs of the first flexion values run
@@ -176,15 +201,16 @@ class _Sweep:
                                    and all(self.varus_free[d] for d in self.depends[b]))
 
     def job(self, body: int, cells: Sequence[tuple[int, int]], start: Pose,
-            start_attitude: Floats) -> ChainJob:
-        """The chain of `cells` of `body`, from `start` (settled at `start_attitude`)."""
+            start_attitude: Floats, beside: Floats | None = None) -> ChainJob:
+        """The chain of `cells` of `body`, from `start` (settled at `start_attitude`), with
+        the changes of rest the ribs `beside` it made (`changes_beside`)."""
         config, flex, var = self.config, self.config.flexion_rad, self.config.varus_rad
         spec = config.bodies[body]
         return ChainJob(self.scene, body, tuple(cells),
                         np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
                         start, start_attitude, self.anchors[body], self.centre_attitudes[body],
-                        self.soft_tissue(body, cells))
+                        self.soft_tissue(body, cells), beside)
 
     def soft_tissue(self, body: int, cells: Sequence[tuple[int, int]]) -> SoftTissue | None:
         """The ligaments acting on `body` along a chain, each cell's other bodies where they
@@ -228,8 +254,32 @@ class _Sweep:
                 for side in _outward(nv, v0):
                     if side:
                         cells = tuple((f, v) for v in side)
+                        beside = [(b, g, v) for g in ribs_beside(f, f0, nf) for v in side]
                         out.append(_Chain('rib', b, cells,
-                                          ((b, f, v0), *pulled_from(b, cells))))
+                                          ((b, f, v0), *beside, *pulled_from(b, cells))))
+        return out
+
+    def changes_beside(self, body: int, f: int, cells: Sequence[tuple[int, int]]
+                       ) -> Floats | None:
+        """(n, 4, 4) for each of the rib at `f`'s `cells`, the mean change of rest the ribs
+        beside it made over the same varus step (from the spine for the first), at the
+        cell's attitude (`mean_change`); NaN where no rib beside converged at both ends of
+        the step. None: the rib learns from no rib beside it."""
+        config, spec = self.config, self.config.bodies[body]
+        flex, var = config.flexion_rad, config.varus_rad
+        beside = ribs_beside(f, self.f0, len(flex))
+        if not beside:
+            return None
+        out = np.full((len(cells), 4, 4), np.nan)
+        before = self.v0
+        for i, (_, v) in enumerate(cells):
+            steps = [(self.poses[body, g, before], config.attitude(spec, flex[g], var[before]),
+                      self.poses[body, g, v], config.attitude(spec, flex[g], var[v]))
+                     for g in beside
+                     if self.converged[body, g, before] and self.converged[body, g, v]]
+            if steps:
+                out[i] = mean_change(steps, config.attitude(spec, flex[f], var[v]))
+            before = v
         return out
 
     def job_for(self, chain: _Chain) -> ChainJob:
@@ -252,7 +302,8 @@ class _Sweep:
             return self.job(b, chain.cells, self.poses[b, self.f0, self.v0],
                             self.centre_attitudes[b])
         return self.job(b, chain.cells, self.poses[b, f, self.v0],
-                        config.attitude(spec, flex[f], var[self.v0]))
+                        config.attitude(spec, flex[f], var[self.v0]),
+                        self.changes_beside(b, f, chain.cells))
 
     def take(self, res: ChainResult) -> list[Cell]:
         """Put a finished chain's cells in place; return the cells now settled (with a
