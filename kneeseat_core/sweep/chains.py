@@ -7,14 +7,15 @@ the flexion values beside) are settled, the change of rest they made over the sa
 step, the mean of the two where both are; else, where the rest before the neighbour in the
 chain is known, the change from that one to the neighbour once more (rests move smoothly
 along a chain: on the total knee's ribs the start then lies a quarter as far from the
-rest, and with the ribs beside it, about a sixth). It is backed off one step along the push. Every
-cell's search envelope is measured from the same place whatever the chain carried in: the
-body's rest at the centre cell carried to the cell's attitude (`carried`), or, for the
-centre cell itself and a body whose centre cell did not converge, the body as delivered
-turned by the attitude (`kneeseat_core.knee.neutral_pose`). So a chain cannot drift farther
-from the joint than the envelope. A cell whose warm-started settle does not converge is
-settled once more from the cold start (the neutral pose backed off one step), and only a
-converged result seeds the next cell.
+rest, and with the ribs beside it, two thirds as far again). It is backed off one step along
+the push. Every cell's search envelope is measured from the same place whatever the chain
+carried in: the body's rest at the centre cell carried to the cell's attitude (`carried`),
+or, for the centre cell itself and a body whose centre cell did not converge, the body as
+delivered turned by the attitude (`kneeseat_core.knee.neutral_pose`). So a chain cannot
+drift farther from the joint than the envelope. A cell whose warm-started settle does not
+converge is settled once more from its own change where the ribs beside gave the start,
+then from the cold start (the neutral pose backed off one step), and only a converged
+result seeds the next cell.
 
 Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`
 (`kneeseat_core.sweep.scene`). A process that runs chains keeps BLAS to one thread: a
@@ -36,7 +37,7 @@ from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import carried, pose_from
 from kneeseat_core.ligaments import LigamentSet, Tissue, TissueLayout
 from kneeseat_core.params import SettleParams
-from kneeseat_core.settle import settle
+from kneeseat_core.settle import settle, SettleResult
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .scene import scene_bodies, SceneSpec
@@ -193,22 +194,30 @@ def run_chain(job: ChainJob) -> ChainResult:
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         # the ribs beside changed over this step from the rest just before: only while
         # `previous` is that rest
+        push = np.asarray(params.push)
         beside = job.change_beside(i) if i == 0 or converged[i - 1] else None
-        start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
-                           params.step_m, before, beside)
+        starts = [warm_start(previous, previous_attitude, attitude, push, params.step_m,
+                             before, beside)]
+        if beside is not None:      # where the ribs beside lead it astray: its own change
+            starts.append(warm_start(previous, previous_attitude, attitude, push,
+                                     params.step_m, before))
+        starts.append(cold_start(attitude, params))    # the chain drifted: the cold start
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:
-            result = settle(fixed, moving, start, params, anchor, tissue)
-            if not result.converged:       # the chain drifted: try the cold start once
-                retry = settle(fixed, moving, cold_start(attitude, params), params, anchor,
-                               tissue)
-                checks += result.collision_checks
-                travels += result.travels
-                fcl += result.fcl_checks
-                result = retry if retry.converged else result
+            result: SettleResult | None = None
+            for start in starts:
+                attempt = settle(fixed, moving, start, params, anchor, tissue)
+                checks += attempt.collision_checks
+                travels += attempt.travels
+                fcl += attempt.fcl_checks
+                if result is None or attempt.converged:   # else the first's failure stands
+                    result = attempt
+                if result.converged:
+                    break
+            assert result is not None
         except (NoContactError, SettleError) as err:
-            poses[i] = start
+            poses[i] = starts[0]
             reasons.append(f'failed: {err}')
             continue
         poses[i] = result.pose
@@ -216,9 +225,6 @@ def run_chain(job: ChainJob) -> ChainResult:
         iterations[i] = result.iterations
         status[i] = result.status
         backed[i] = result.backed_out_m
-        checks += result.collision_checks
-        travels += result.travels
-        fcl += result.fcl_checks
         reasons.append(result.reason)
         if result.converged:   # a failed cell never seeds its neighbours
             before = (previous, previous_attitude) if i > 0 and converged[i - 1] else None
