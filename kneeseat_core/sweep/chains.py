@@ -37,7 +37,7 @@ from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import carried, pose_from
 from kneeseat_core.ligaments import LigamentSet, Tissue, TissueLayout
 from kneeseat_core.params import SettleParams
-from kneeseat_core.settle import settle, SettleResult
+from kneeseat_core.settle import settle
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .scene import scene_bodies, SceneSpec
@@ -205,21 +205,24 @@ def run_chain(job: ChainJob) -> ChainResult:
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:
-            result: SettleResult | None = None
-            for start in starts:
-                attempt = settle(fixed, moving, start, params, anchor, tissue)
-                checks += attempt.collision_checks
-                travels += attempt.travels
-                fcl += attempt.fcl_checks
-                if result is None or attempt.converged:   # else the first's failure stands
-                    result = attempt
-                if result.converged:
-                    break
-            assert result is not None
+            result = settle(fixed, moving, starts[0], params, anchor, tissue)
         except (NoContactError, SettleError) as err:
             poses[i] = starts[0]
             reasons.append(f'failed: {err}')
             continue
+        tried = [result]
+        for start in starts[1:] if not result.converged else ():
+            try:
+                retry = settle(fixed, moving, start, params, anchor, tissue)
+            except (NoContactError, SettleError):
+                continue            # a start that cannot settle is no better: the next
+            tried.append(retry)
+            if retry.converged:     # else the first start's failure is the one reported
+                result = retry
+                break
+        checks += sum(t.collision_checks for t in tried)
+        travels += sum(t.travels for t in tried)
+        fcl += sum(t.fcl_checks for t in tried)
         poses[i] = result.pose
         converged[i] = result.converged
         iterations[i] = result.iterations
