@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cache, cached_property
 import time
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -175,6 +175,18 @@ def _one_blas_thread() -> None:
     threadpool_limits(limits=1, user_api='blas')
 
 
+def _retry_starts(previous: Pose, previous_attitude: Floats, attitude: Floats,
+                  params: SettleParams, before: tuple[Pose, Floats] | None,
+                  led_by_beside: bool) -> Iterator[Pose]:
+    """The starts a cell whose warm-started settle did not converge is tried from next, made
+    only when asked: its own change where the ribs beside gave the start (they may lead it
+    astray), then the cold start (the chain drifted)."""
+    if led_by_beside:
+        yield warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
+                         params.step_m, before)
+    yield cold_start(attitude, params)
+
+
 def run_chain(job: ChainJob) -> ChainResult:
     """Settle the cells of `job` in order (runs in a worker process)."""
     _one_blas_thread()
@@ -194,26 +206,23 @@ def run_chain(job: ChainJob) -> ChainResult:
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         # the ribs beside changed over this step from the rest just before: only while
         # `previous` is that rest
-        push = np.asarray(params.push)
         beside = job.change_beside(i) if i == 0 or converged[i - 1] else None
-        starts = [warm_start(previous, previous_attitude, attitude, push, params.step_m,
-                             before, beside)]
-        if beside is not None:      # where the ribs beside lead it astray: its own change
-            starts.append(warm_start(previous, previous_attitude, attitude, push,
-                                     params.step_m, before))
-        starts.append(cold_start(attitude, params))    # the chain drifted: the cold start
+        start = warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
+                           params.step_m, before, beside)
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:
-            result = settle(fixed, moving, starts[0], params, anchor, tissue)
+            result = settle(fixed, moving, start, params, anchor, tissue)
         except (NoContactError, SettleError) as err:
-            poses[i] = starts[0]
+            poses[i] = start
             reasons.append(f'failed: {err}')
             continue
         tried = [result]
-        for start in starts[1:] if not result.converged else ():
+        retries = () if result.converged else _retry_starts(
+            previous, previous_attitude, attitude, params, before, beside is not None)
+        for retry_start in retries:
             try:
-                retry = settle(fixed, moving, start, params, anchor, tissue)
+                retry = settle(fixed, moving, retry_start, params, anchor, tissue)
             except (NoContactError, SettleError):
                 continue            # a start that cannot settle is no better: the next
             tried.append(retry)
