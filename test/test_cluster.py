@@ -168,6 +168,12 @@ def test_a_chain_that_keeps_killing_workers_becomes_a_kneeseat_error() -> None:
 
 # --- meshes: shipped once per worker, resolved by content -------------------------------
 
+def tibia_scene(config: KneeConfig) -> SceneSpec:
+    """The scene of `config`'s reference and first body, as the sweep ships it."""
+    return SceneSpec(str(config.reference.mesh), (str(config.bodies[0].mesh),), config.units,
+                     (file_sha256(config.reference.mesh), file_sha256(config.bodies[0].mesh)))
+
+
 def spine_job(config: KneeConfig, scene: SceneSpec) -> ChainJob:
     """The tibia's centre cell and two flexion steps, as `sweep` would chain them."""
     body = config.bodies[0]
@@ -184,11 +190,7 @@ def test_a_cell_the_ribs_beside_lead_astray_settles_from_its_own_change(
     # a change of rest "from the ribs beside" that throws the middle cell's start 25 mm
     # across the push, beyond the 20 mm envelope: that settle fails, and the cell settles
     # from the start it would have had without the ribs beside, to the same pose bit for bit
-    scene = SceneSpec(str(small_config.reference.mesh), (str(small_config.bodies[0].mesh),),
-                      small_config.units,
-                      (file_sha256(small_config.reference.mesh),
-                       file_sha256(small_config.bodies[0].mesh)))
-    job = spine_job(small_config, scene)
+    job = spine_job(small_config, tibia_scene(small_config))
     plain = run_chain(job)
     astray = np.full((3, 4, 4), np.nan)
     astray[1] = np.eye(4)
@@ -207,10 +209,7 @@ def blas_threads(info: list[dict[str, Any]]) -> set[int]:
 def test_a_worker_that_runs_a_chain_keeps_blas_to_one_thread(small_config: KneeConfig) -> None:
     # OpenBLAS threads spin between a settle's small products on the cores the other
     # workers need: a process that has run a chain uses one
-    scene = SceneSpec(str(small_config.reference.mesh), (str(small_config.bodies[0].mesh),),
-                      small_config.units,
-                      (file_sha256(small_config.reference.mesh),
-                       file_sha256(small_config.bodies[0].mesh)))
+    scene = tibia_scene(small_config)
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) as pool:
         pool.submit(exec, 'import numpy').result(timeout=DEADLINE_S)
         before = blas_threads(pool.submit(threadpool_info).result(timeout=DEADLINE_S))
