@@ -224,8 +224,10 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
     probes = np.array(lateral_poses(free, push, centre, seed, 24, 3e-4, 0.5))
     lifts = np.random.default_rng(seed).choice([2.5e-6, 2.5e-5, 1e-4], len(probes))
     # every pair a witness of every probe
-    pairs = np.broadcast_to(touch.faces, (len(probes),) + touch.faces.shape)
-    refuted = sweep.refuted(probes, lifts, pairs, 0.0, 1e-3)
+    pool = (touch.gaps, np.zeros((len(touch.gaps), 3)), touch.faces)
+    offsets = np.zeros((len(probes), 3))
+    refuted = np.array([sweep.first_unrefuted(probes, lifts, pool, offsets, len(touch.gaps),
+                                              0.0, 1e-3, i)[0] != i for i in range(len(probes))])
     for probe, lift, no in zip(probes, lifts, refuted):
         whole = sweep.touch(probe, 1e-3, 3e-4)
         short = sweep.touch(probe, 1e-3, 3e-4, short_of=lift)
@@ -255,6 +257,36 @@ def test_a_refuted_probe_collides_for_python_fcl_on_the_total_knee() -> None:
                                                                  np.array([0.0, -2e-3, 0.0])),
                                   seed=13)
     assert refuted >= probes // 2
+
+
+def test_a_moves_witnesses_are_the_pool_features_that_close_first_after_it() -> None:
+    """The witnesses of a move are the `count` features of the pool whose first-order gap
+    after the move's offset is least, first closing first (numpy ranks them here); a move
+    whose needed travel is not finite is passed over, and one that no witness refutes
+    comes back with them."""
+    var = sc.variant(sc.SCENES[0], 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    sweep = SweepPair(var.fixed, var.moving, push)
+    rng = np.random.default_rng(3)
+    k = 200
+    faces = np.column_stack([rng.integers(0, len(var.moving.faces), k),
+                             rng.integers(0, len(var.fixed.faces), k)])
+    gaps, slopes = rng.uniform(0.0, 1e-3, k), rng.uniform(-1.0, 1.0, (k, 3))
+    offsets = rng.uniform(-1e-4, 1e-4, (3, 3))
+    poses = np.repeat(np.asarray(var.start, dtype=np.float64)[None], 3, axis=0)
+    poses[:, :3, 3] -= 0.5 * push      # far from the fixed body: nothing closes short
+    needed = np.array([math.inf, -1.0, -1.0])
+    for count in (1, 17, k, k + 5):
+        index, witnesses = sweep.first_unrefuted(poses, needed, (gaps, slopes, faces), offsets,
+                                                 count, 0.0, 1e-3)
+        assert index == 1 and witnesses is not None
+        ranked = np.argsort(gaps + slopes @ offsets[1], kind='stable')[:count]
+        assert np.array_equal(witnesses, faces[ranked])
+        index, _ = sweep.first_unrefuted(poses, needed, (gaps, slopes, faces), offsets, count,
+                                         0.0, 1e-3, start=2)
+        assert index == 2
+    assert sweep.first_unrefuted(poses, needed, (gaps, slopes, faces), offsets, 5, 0.0, 1e-3,
+                                 start=3) == (3, None)
 
 
 @pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')
@@ -308,18 +340,32 @@ def test_the_engine_refuses_bad_arrays_without_crashing() -> None:
         _sweep.travels(fixed, moving, np.eye(3), 0.0, 0.0, 1.0)
     with pytest.raises(ValueError):
         _sweep.travels(fixed, moving, np.eye(4)[None], -1.0, 0.0, 1.0)
-    pose, one, pair = np.eye(4)[None], np.zeros(1), np.array([[[0, 0]]])
-    assert _sweep.refuted(fixed, moving, pose, one, pair, 0.0, 0.0) in (b'\x00', b'\x01')
+    pose, one = np.eye(4)[None], np.zeros(1)
+    gaps, slopes, faces = np.zeros(1), np.zeros((1, 3)), np.array([[0, 0]])
+    offsets = np.zeros((1, 3))
+
+    def first(**named: object) -> tuple[int, bytes]:
+        args = dict(poses=pose, needed=one, gaps=gaps, slopes=slopes, faces=faces,
+                    offsets=offsets, count=1, behind=0.0, deepest=0.0, start=0)
+        args.update(named)
+        return _sweep.first_unrefuted(fixed, moving, *args.values())
+
+    index, _ = first()
+    assert index in (0, 1)
     with pytest.raises(ValueError):       # a face the body does not have
-        _sweep.refuted(fixed, moving, pose, one, np.array([[[0, 99]]]), 0.0, 0.0)
+        first(faces=np.array([[0, 99]]))
     with pytest.raises(ValueError):       # a needed travel too many
-        _sweep.refuted(fixed, moving, pose, np.zeros(2), pair, 0.0, 0.0)
-    with pytest.raises(ValueError):       # pairs of the wrong shape
-        _sweep.refuted(fixed, moving, pose, one, np.zeros((1, 3), dtype=np.int64), 0.0, 0.0)
+        first(needed=np.zeros(2))
+    with pytest.raises(ValueError):       # slopes of the wrong shape
+        first(slopes=np.zeros((1, 2)))
+    with pytest.raises(ValueError):       # an offset missing
+        first(offsets=np.zeros((0, 3)))
     with pytest.raises(ValueError):       # a negative depth
-        _sweep.refuted(fixed, moving, pose, one, pair, 0.0, -1.0)
+        first(deepest=-1.0)
     with pytest.raises(TypeError):
-        _sweep.refuted(fixed, moving, pose, 'x', pair, 0.0, 0.0)
+        first(needed='x')
+    with pytest.raises(TypeError):
+        first(faces=np.zeros((1, 2)))
     with pytest.raises(ValueError):
         _sweep.contacts(fixed, moving, np.eye(4), 0.0, 0.0, 1.0, math.nan)
     with pytest.raises(ValueError):       # a seed face the body does not have

@@ -32,6 +32,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <utility>
 #include <vector>
 
 #include "../_buffers.h"
@@ -800,7 +801,7 @@ double vertex_gap(Sweep &s, int32_t i, double behind, double best, std::vector<i
 bool get_sized(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t count, const char *what) {
     if (!get_buffer(obj, &view, format, 8, what)) return false;
     if (view.len == 8 * count) return true;
-    PyErr_Format(PyExc_ValueError, "refuted: %s has the wrong shape", what);
+    PyErr_Format(PyExc_ValueError, "first_unrefuted: %s has the wrong shape", what);
     PyBuffer_Release(&view);
     return false;
 }
@@ -835,54 +836,92 @@ bool witness_short(Sweep &s, const int64_t *pairs, Py_ssize_t k, double needed, 
     return false;
 }
 
-// refuted(fixed_view, moving_view, poses (m, 4, 4), needed (m,), pairs (m, k, 2) of (moving
-// face, fixed face), behind, deepest) -> (m,) int8: 1 where a witness of the pose (its row of
-// pairs, then their moving triangles' vertices; see witness_short) closes short of its
-// needed travel
-PyObject *refuted(PyObject *, PyObject *args) {
-    PyObject *fo, *mo, *po, *no, *qo;
+// The `count` features of a pool (gaps (k,), slopes (k, 3) over the lateral state, faces
+// (k, 2)) that the pool's first-order model says close first after a lateral move `offset`
+// (3,) from where it was taken: their pairs of triangles into `picked`, the first closing
+// first.
+void pick_witnesses(const double *gaps, const double *slopes, const int64_t *faces, Py_ssize_t k,
+                    const double *offset, Py_ssize_t count, std::vector<std::pair<double, int32_t>> &order,
+                    std::vector<int64_t> &picked) {
+    order.resize(k);
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        const double *a = slopes + 3 * j;
+        order[j] = {gaps[j] + a[0] * offset[0] + a[1] * offset[1] + a[2] * offset[2], static_cast<int32_t>(j)};
+    }
+    const Py_ssize_t n = std::min(count, k);
+    if (n < k) std::nth_element(order.begin(), order.begin() + n, order.end());
+    std::sort(order.begin(), order.begin() + n);
+    picked.resize(2 * n);
+    for (Py_ssize_t r = 0; r < n; ++r) {
+        picked[2 * r] = faces[2 * order[r].second];
+        picked[2 * r + 1] = faces[2 * order[r].second + 1];
+    }
+}
+
+// first_unrefuted(fixed_view, moving_view, poses (m, 4, 4), needed (m,), gaps (k,), slopes
+// (k, 3), faces (k, 2), offsets (m, 3), count, behind, deepest, start) -> (i, witnesses):
+// the first pose i >= start whose needed travel is finite and none of whose witnesses
+// closes short of it (m where there is none), and the pairs of triangles (c, 2) of its
+// witnesses. A pose's witnesses are the `count` features of the pool (gaps, slopes, faces)
+// that the pool says close first after its lateral offset from where the pool was taken,
+// then the vertices of their moving triangles (see witness_short).
+PyObject *first_unrefuted(PyObject *, PyObject *args) {
+    PyObject *fo, *mo, *po, *no, *go, *so, *qo, *oo;
+    Py_ssize_t count, start;
     double behind, deepest;
     Sweep s;
-    if (!PyArg_ParseTuple(args, "O!O!OOOdd", &ViewType, &fo, &ViewType, &mo, &po, &no, &qo, &behind, &deepest))
+    if (!PyArg_ParseTuple(args, "O!O!OOOOOOnddn", &ViewType, &fo, &ViewType, &mo, &po, &no, &go, &so, &qo, &oo,
+                          &count, &behind, &deepest, &start))
         return nullptr;
     if (!take_views(fo, mo, s)) return nullptr;
-    Py_buffer bufs[3];
+    Py_buffer bufs[6];
     int held = 0;
     bool ok = get_buffer(po, &bufs[0], "d", 8, "poses") && ++held;
     Py_ssize_t m = ok ? bufs[0].len / 128 : 0;
-    if (ok && bufs[0].len != 128 * m) {
-        PyErr_SetString(PyExc_ValueError, "refuted: poses has the wrong shape");
-        ok = false;
-    }
+    if (ok && bufs[0].len != 128 * m) ok = false;
     ok = ok && get_sized(no, bufs[1], "d", m, "needed") && ++held;
-    ok = ok && get_buffer(qo, &bufs[2], "q", 8, "pairs") && ++held;
-    Py_ssize_t k = ok && m > 0 ? bufs[2].len / (16 * m) : 0;
-    const int64_t *pairs = ok ? static_cast<const int64_t *>(bufs[2].buf) : nullptr;
-    if (ok && bufs[2].len != 16 * m * k) ok = false;
-    ok = ok && faces_of(s, pairs, m * k);
-    if (ok && (!(behind >= 0.0) || !(deepest >= 0.0))) ok = false;
+    ok = ok && get_buffer(go, &bufs[2], "d", 8, "gaps") && ++held;
+    Py_ssize_t k = ok ? bufs[2].len / 8 : 0;
+    ok = ok && get_sized(so, bufs[3], "d", 3 * k, "slopes") && ++held;
+    ok = ok && get_sized(qo, bufs[4], "q", 2 * k, "faces") && ++held;
+    ok = ok && get_sized(oo, bufs[5], "d", 3 * m, "offsets") && ++held;
+    const int64_t *faces = ok ? static_cast<const int64_t *>(bufs[4].buf) : nullptr;
+    ok = ok && faces_of(s, faces, k);
+    if (ok && (!(behind >= 0.0) || !(deepest >= 0.0) || count < 0 || start < 0)) ok = false;
     if (!ok) {
         if (!PyErr_Occurred())
-            PyErr_SetString(PyExc_ValueError, "refuted: poses (m, 4, 4), needed (m,), pairs (m, k, 2) of face "
-                                              "indices, behind and deepest not negative");
+            PyErr_SetString(PyExc_ValueError, "first_unrefuted: poses (m, 4, 4), needed (m,), gaps (k,), slopes "
+                                              "(k, 3), faces (k, 2) of face indices, offsets (m, 3); count, "
+                                              "behind, deepest and start not negative");
         for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
         return nullptr;
     }
     const double *p = static_cast<const double *>(bufs[0].buf), *needed = static_cast<const double *>(bufs[1].buf);
-    std::vector<int8_t> out(m, 0);
+    const double *gaps = static_cast<const double *>(bufs[2].buf), *slopes = static_cast<const double *>(bufs[3].buf);
+    const double *offsets = static_cast<const double *>(bufs[5].buf);
+    std::vector<std::pair<double, int32_t>> order;
+    std::vector<int64_t> picked;
     std::vector<int32_t> vertices, stack;
-    for (Py_ssize_t i = 0; i < m; ++i) {
+    Py_ssize_t i = start;
+    for (; i < m; ++i) {
+        if (!std::isfinite(needed[i])) continue;
+        pick_witnesses(gaps, slopes, faces, k, offsets + 3 * i, count, order, picked);
         s.place(p + 16 * i);
-        out[i] = witness_short(s, pairs + 2 * k * i, k, needed[i], behind, deepest, vertices, stack) ? 1 : 0;
+        if (!witness_short(s, picked.data(), static_cast<Py_ssize_t>(picked.size() / 2), needed[i], behind,
+                           deepest, vertices, stack))
+            break;
     }
-    for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
+    for (int j = 0; j < held; ++j) PyBuffer_Release(&bufs[j]);
+    if (i >= m) picked.clear();
     static const char nothing = 0;
-    return PyBytes_FromStringAndSize(m ? reinterpret_cast<const char *>(out.data()) : &nothing, m);
+    return Py_BuildValue("(ny#)", std::min(i, m), picked.empty() ? &nothing : reinterpret_cast<const char *>(picked.data()),
+                         static_cast<Py_ssize_t>(picked.size() * 8));
 }
 
 PyMethodDef module_methods[] = {
-    {"refuted", refuted, METH_VARARGS,
-     "refuted(fixed_view, moving_view, poses, needed, pairs, behind, deepest) -> where a witness closes short"},
+    {"first_unrefuted", first_unrefuted, METH_VARARGS,
+     "first_unrefuted(fixed_view, moving_view, poses, needed, gaps, slopes, faces, offsets, count, behind, "
+     "deepest, start) -> (index, witnesses)"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

@@ -211,25 +211,38 @@ class SweepPair:
                      f['point'].copy(), f['room'].copy(), f['kind'].copy(),
                      np.column_stack([f['moving_face'], f['fixed_face']]))
 
-    def refuted(self, poses: Floats, needed: Floats, pairs: Ints, behind: float,
-                deepest: float) -> np.ndarray:
-        """(m,) True where a contact with the body at each of `poses` (m, 4, 4) closes
-        short of the travel along Δ it `needed` (m,): the travel from that pose is no
-        longer than any contact's gap, so the pose cannot go that far (its witness).
+    def first_unrefuted(self, poses: Floats, needed: Floats, pool: tuple[Floats, Floats, Ints],
+                        offsets: Floats, count: int, behind: float, deepest: float,
+                        start: int = 0) -> tuple[int, Ints | None]:
+        """The first of `poses` (m, 4, 4) from `start` on that its witnesses do not refute,
+        and those witnesses (c, 2), or (m, None) when every pose is refuted. A pose whose
+        travel `needed` (m,) is not finite is passed over (it cannot gain); one is refuted
+        where a contact closes short of the travel it needs: the travel from it is no longer
+        than any contact's gap, so it cannot go that far.
 
-        The witnesses of a pose: its row of `pairs` (m, k, 2) of triangles (moving face,
-        fixed face; the least gap over the overlap of their shadows, a pair lying wholly
-        more than `behind` below the pose not counting), then the vertices of their moving
-        triangles, each onto whatever face of the fixed body lies under it (a face more than
-        `deepest` above a vertex not counting), asked in turn until one closes short."""
+        The witnesses of a pose: the `count` features of the `pool` (gaps (k,), slopes (k, 3)
+        over the lateral state, pairs of triangles (k, 2) as (moving face, fixed face)) that
+        the pool's first-order model says close first after the pose's lateral `offsets`
+        (m, 3) from where the pool was taken, first closing first (the least gap over the
+        overlap of their shadows, a pair lying wholly more than `behind` below the pose not
+        counting); then the vertices of their moving triangles, each onto whatever face of
+        the fixed body lies under it (a face more than `deepest` above a vertex not
+        counting), asked in turn until one closes short."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
-        if len(poses) == 0:
-            return np.zeros(0, dtype=bool)
-        raw = _sweep.refuted(self._fixed_view, self._moving_view(poses[0]), poses,
-                             np.ascontiguousarray(needed, dtype=np.float64),
-                             np.ascontiguousarray(pairs, dtype=np.int64), float(behind),
-                             float(deepest))
-        return np.frombuffer(raw, dtype=np.int8).astype(bool)
+        if start >= len(poses):
+            return len(poses), None
+        gaps, slopes, faces = pool
+        index, raw = _sweep.first_unrefuted(
+            self._fixed_view, self._moving_view(poses[0]), poses,
+            np.ascontiguousarray(needed, dtype=np.float64),
+            np.ascontiguousarray(gaps, dtype=np.float64),
+            np.ascontiguousarray(slopes, dtype=np.float64),
+            np.ascontiguousarray(faces, dtype=np.int64),
+            np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(behind),
+            float(deepest), int(start))
+        witnesses = np.frombuffer(raw, dtype=np.int64).reshape(-1, 2) if index < len(poses) \
+            else np.zeros((0, 2), dtype=np.int64)
+        return index, (witnesses if len(witnesses) else None)
 
 
 def _finite(limit: float) -> float:

@@ -321,9 +321,9 @@ class _Climb:
         move from above). A move is refuted without a search where a contact closes short
         of the travel it needs: a pair of triangles from the witnesses' pool that the pool
         says close first after it, or a vertex of their moving triangles onto whatever face
-        of the fixed body it meets there (`SweepPair.refuted`, all in one call). The rest
-        are measured in turn, each search stopping as soon as a contact short of the
-        travel the move needs is found."""
+        of the fixed body it meets there (`SweepPair.first_unrefuted`: the moves in turn, up
+        to the first that none refutes). That one is measured, its search stopping as soon
+        as a contact short of the travel the move needs is found, and so on."""
         assert self.here is not None and self.pool is not None
         s, t, sweep = self.search, self.tuning, self.sweep
         if len(moves) == 0:
@@ -342,30 +342,28 @@ class _Climb:
         # objective is concave along Δ); a place stands the standoff short of its travel,
         # so a contact short of the two together refutes the move
         needed = self.objective.first_lifts(targets, here.pose, gain) + self.standoff
-        open_ = np.isfinite(needed)
         pool = self.pool.model
-        # the witnesses of each move still open: the pairs the pool says close first there
-        pairs: Ints | None = None
-        if len(pool.gaps) and open_.any():
-            # penetration from a lateral move of length l is at most its steepest slope
-            # times l: a vertex that far above a face is through it
-            deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
-            pairs = np.zeros((len(moves), min(t.witnesses, len(pool.gaps)), 2), dtype=np.int64)
-            pairs[open_] = pool.witnesses(moves[open_] + (here.state - self.pool.state),
-                                          t.witnesses)
-            open_[open_] = ~sweep.refuted(targets[open_], needed[open_], pairs[open_],
-                                          self.standoff, deepest)
-        for i in np.flatnonzero(open_):
+        # penetration from a lateral move of length l is at most its steepest slope times l:
+        # a vertex that far above a face is through it
+        deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
+        offsets = moves + (here.state - self.pool.state)
+        i = 0
+        while True:
+            # the next move open that its witnesses (the pairs the pool says close first
+            # there) do not refute
+            i, seeds = sweep.first_unrefuted(targets, needed, (pool.gaps, pool.slopes, pool.faces),
+                                             offsets, t.witnesses, self.standoff, deepest, i)
+            if i >= len(moves):
+                return None
             window = t.pool_window_res if self._beyond_pool(self.state_of(targets[i])) else None
             # the witnesses, none short of the travel needed, bound it from above: the
             # search starts from them
-            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]),
-                                None if pairs is None else pairs[i])
+            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]), seeds)
             if place is None:
                 return (Status.LOST, LOST_CONTACT)
             if isinstance(place, _Place) and place.value - here.value >= gain:
                 return place
-        return None
+            i += 1
 
 
 def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,

@@ -13,7 +13,7 @@ triangle, the crossing on the same edges); the climb uses the model to order its
 propose the move that climbs where several contacts hold the body at once (`best_move`: the
 objective press s(x) + drive . x is then best raised along a combination of slide and spin
 that keeps every contact, a linear program in (x, s)) and to name the pairs of triangles
-likely to stop a move (its witnesses, `SweepPair.refuted`), never to decide a gain
+likely to stop a move (its witnesses, `SweepPair.first_unrefuted`), never to decide a gain
 (`kneeseat_core.settle.climb`). The linear program is solved by a small simplex written by
 hand (`_simplex.cpp`, compiled with the package): the climb asks it at every fine step, and
 a general solver's setup alone costs more than that (scipy's linprog about 3 ms).
@@ -54,16 +54,6 @@ class Model:
         """(m,) the modelled travel after each of `moves` (m, 3)."""
         out: Floats = np.min(self.gaps[None, :] + moves @ self.slopes.T, axis=1)
         return out
-
-    def witnesses(self, moves: Floats, count: int) -> Ints:
-        """(m, count, 2) for each of `moves` (m, 3) the triangles of the `count` features
-        the model says close first after it (fewer where there are fewer features; numpy's
-        partition, vectorised, picks them faster than a loop in the engine did)."""
-        predicted = self.gaps[None, :] + moves @ self.slopes.T
-        k = min(count, len(self.gaps))
-        first = np.argpartition(predicted, k - 1, axis=1)[:, :k]
-        picked: Ints = self.faces[first]
-        return picked
 
 
 def feature_slopes(normals: Floats, points: Floats, push: Floats, e1: Floats, e2: Floats,
