@@ -31,6 +31,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <functional>
 #include <limits>
 #include <utility>
 #include <vector>
@@ -806,25 +807,27 @@ bool get_sized(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t co
     return false;
 }
 
-// Whether a witness of the sweep's pose closes short of `needed`: one of its `k` pairs of
-// triangles (moving face, fixed face: the least gap over the overlap of their shadows, a
-// pair lying wholly more than `behind` below not counting), or else a vertex of their
-// moving triangles onto whatever front face of the fixed body lies under it (a face more
-// than `deepest` above the vertex not counting). Each is asked in turn until one is short.
-bool witness_short(Sweep &s, const int64_t *pairs, Py_ssize_t k, double needed, double behind,
-                   double deepest, std::vector<int32_t> &vertices, std::vector<int32_t> &stack) {
+// Whether the pair of triangles (moving face, fixed face, as given) closes short of
+// `needed` with the moving body placed by the sweep (the least gap over the overlap of
+// their shadows; a pair lying wholly more than `behind` below not counting); the moving
+// triangle's vertices are added to `vertices` otherwise.
+bool pair_short(Sweep &s, const int64_t *pair, double needed, double behind, std::vector<int32_t> &vertices) {
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
-    vertices.clear();
-    for (Py_ssize_t r = 0; r < k; ++r) {
-        const int64_t *pair = pairs + 2 * r;
-        const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
-        const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
-        const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
-        PairGap g(A, B);
-        if (g.kind >= 0 && g.most >= -behind && g.least < needed) return true;
-        vertices.insert(vertices.end(), fa, fa + 3);
-    }
-    if (fb.nodes.empty()) return false;
+    const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
+    const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
+    const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
+    PairGap g(A, B);
+    if (g.kind >= 0 && g.most >= -behind && g.least < needed) return true;
+    vertices.insert(vertices.end(), fa, fa + 3);
+    return false;
+}
+
+// Whether one of the moving body's `vertices` (placed by the sweep; repeats allowed) closes
+// short of `needed` onto whatever front face of the fixed body lies under it (a face more
+// than `deepest` above the vertex not counting).
+bool vertex_short(Sweep &s, std::vector<int32_t> &vertices, double needed, double deepest,
+                  std::vector<int32_t> &stack) {
+    if (s.fixed->body->nodes.empty()) return false;
     // each vertex once (the triangles of a contact share most of theirs)
     std::sort(vertices.begin(), vertices.end());
     vertices.erase(std::unique(vertices.begin(), vertices.end()), vertices.end());
@@ -836,26 +839,33 @@ bool witness_short(Sweep &s, const int64_t *pairs, Py_ssize_t k, double needed, 
     return false;
 }
 
-// The `count` features of a pool (gaps (k,), slopes (k, 3) over the lateral state, faces
-// (k, 2)) that the pool's first-order model says close first after a lateral move `offset`
-// (3,) from where it was taken: their pairs of triangles into `picked`, the first closing
-// first.
-void pick_witnesses(const double *gaps, const double *slopes, const int64_t *faces, Py_ssize_t k,
-                    const double *offset, Py_ssize_t count, std::vector<std::pair<double, int32_t>> &order,
-                    std::vector<int64_t> &picked) {
-    order.resize(k);
+// Whether a witness of the sweep's pose closes short of `needed`: the `count` features of a
+// pool (gaps (k,), slopes (k, 3) over the lateral state, faces (k, 2)) that the pool's
+// first-order model says close first after the lateral move `offset` (3,) from where it
+// was taken, asked first closing first (pair_short: most moves are refuted by one of the
+// first few), then the vertices of their moving triangles (vertex_short). Their pairs go
+// to `picked` (all of them where none is short).
+bool witness_short(Sweep &s, const double *gaps, const double *slopes, const int64_t *faces, Py_ssize_t k,
+                   const double *offset, Py_ssize_t count, double needed, double behind, double deepest,
+                   std::vector<std::pair<double, int32_t>> &heap, std::vector<int64_t> &picked,
+                   std::vector<int32_t> &vertices, std::vector<int32_t> &stack) {
+    heap.resize(k);
     for (Py_ssize_t j = 0; j < k; ++j) {
         const double *a = slopes + 3 * j;
-        order[j] = {gaps[j] + a[0] * offset[0] + a[1] * offset[1] + a[2] * offset[2], static_cast<int32_t>(j)};
+        heap[j] = {gaps[j] + a[0] * offset[0] + a[1] * offset[1] + a[2] * offset[2], static_cast<int32_t>(j)};
     }
-    const Py_ssize_t n = std::min(count, k);
-    if (n < k) std::nth_element(order.begin(), order.begin() + n, order.end());
-    std::sort(order.begin(), order.begin() + n);
-    picked.resize(2 * n);
-    for (Py_ssize_t r = 0; r < n; ++r) {
-        picked[2 * r] = faces[2 * order[r].second];
-        picked[2 * r + 1] = faces[2 * order[r].second + 1];
+    const auto later = std::greater<std::pair<double, int32_t>>();
+    std::make_heap(heap.begin(), heap.end(), later);
+    picked.clear();
+    vertices.clear();
+    for (Py_ssize_t r = 0; r < count && !heap.empty(); ++r) {
+        std::pop_heap(heap.begin(), heap.end(), later);
+        const int64_t *pair = faces + 2 * heap.back().second;
+        heap.pop_back();
+        picked.insert(picked.end(), pair, pair + 2);
+        if (pair_short(s, pair, needed, behind, vertices)) return true;
     }
+    return vertex_short(s, vertices, needed, deepest, stack);
 }
 
 // first_unrefuted(fixed_view, moving_view, poses (m, 4, 4), needed (m,), gaps (k,), slopes
@@ -899,16 +909,15 @@ PyObject *first_unrefuted(PyObject *, PyObject *args) {
     const double *p = static_cast<const double *>(bufs[0].buf), *needed = static_cast<const double *>(bufs[1].buf);
     const double *gaps = static_cast<const double *>(bufs[2].buf), *slopes = static_cast<const double *>(bufs[3].buf);
     const double *offsets = static_cast<const double *>(bufs[5].buf);
-    std::vector<std::pair<double, int32_t>> order;
+    std::vector<std::pair<double, int32_t>> heap;
     std::vector<int64_t> picked;
     std::vector<int32_t> vertices, stack;
     Py_ssize_t i = start;
     for (; i < m; ++i) {
         if (!std::isfinite(needed[i])) continue;
-        pick_witnesses(gaps, slopes, faces, k, offsets + 3 * i, count, order, picked);
         s.place(p + 16 * i);
-        if (!witness_short(s, picked.data(), static_cast<Py_ssize_t>(picked.size() / 2), needed[i], behind,
-                           deepest, vertices, stack))
+        if (!witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], behind, deepest, heap,
+                           picked, vertices, stack))
             break;
     }
     for (int j = 0; j < held; ++j) PyBuffer_Release(&bufs[j]);
