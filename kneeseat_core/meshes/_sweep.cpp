@@ -850,18 +850,25 @@ bool witness_short(Sweep &s, const double *gaps, const double *slopes, const int
                    std::vector<std::pair<double, int32_t>> &heap, std::vector<int64_t> &picked,
                    std::vector<int32_t> &vertices, std::vector<int32_t> &stack) {
     heap.resize(k);
+    Py_ssize_t least = 0;
     for (Py_ssize_t j = 0; j < k; ++j) {
         const double *a = slopes + 3 * j;
         heap[j] = {gaps[j] + a[0] * offset[0] + a[1] * offset[1] + a[2] * offset[2], static_cast<int32_t>(j)};
+        if (heap[j] < heap[least]) least = j;
     }
-    const auto later = std::greater<std::pair<double, int32_t>>();
-    std::make_heap(heap.begin(), heap.end(), later);
     picked.clear();
     vertices.clear();
-    for (Py_ssize_t r = 0; r < count && !heap.empty(); ++r) {
-        std::pop_heap(heap.begin(), heap.end(), later);
-        const int64_t *pair = faces + 2 * heap.back().second;
-        heap.pop_back();
+    if (k == 0 || count == 0) return vertex_short(s, vertices, needed, deepest, stack);
+    // the first closing first: most moves are refuted by it, at no cost of ordering the rest
+    std::swap(heap[0], heap[least]);
+    const int64_t *first = faces + 2 * heap[0].second;
+    picked.insert(picked.end(), first, first + 2);
+    if (pair_short(s, first, needed, behind, vertices)) return true;
+    const Py_ssize_t n = std::min(count, k);
+    if (n < k) std::nth_element(heap.begin() + 1, heap.begin() + n, heap.end());
+    std::sort(heap.begin() + 1, heap.begin() + n);
+    for (Py_ssize_t r = 1; r < n; ++r) {
+        const int64_t *pair = faces + 2 * heap[r].second;
         picked.insert(picked.end(), pair, pair + 2);
         if (pair_short(s, pair, needed, behind, vertices)) return true;
     }
