@@ -115,15 +115,15 @@ class SweepBody:
     def view(self, direction: Floats, side: int) -> _sweep.View:
         """The body seen along the unit `direction` (its own frame): `side` +1 for the
         moving body (its faces facing +direction take part), -1 for the fixed body."""
-        rounded = np.rint(np.asarray(direction, dtype=np.float64) / _SAME_DIRECTION)
-        key = (side, *(int(c) for c in rounded.tolist()))
-        found = self._views.get(key)   # type: ignore[arg-type]
+        x, y, z = (c / _SAME_DIRECTION for c in np.asarray(direction, dtype=np.float64).tolist())
+        key = (side, round(x), round(y), round(z))     # to the nearest, ties to even
+        found = self._views.get(key)
         if found is None:
             if len(self._views) >= _VIEWS_KEPT:
                 del self._views[next(iter(self._views))]
-            along = np.array(rounded, dtype=np.float64) * _SAME_DIRECTION
+            along = np.array(key[1:], dtype=np.float64) * _SAME_DIRECTION
             unit = np.ascontiguousarray(along / np.linalg.norm(along), dtype=np.float64)
-            found = self._views[key] = _sweep.View(self.native, unit, side)   # type: ignore[index]
+            found = self._views[key] = _sweep.View(self.native, unit, side)
         return found
 
 
