@@ -25,7 +25,10 @@ class SettleTuning:
             (what the climb uses of them is within `contact_tol_res`: this covers it, with a
             margin no rounding crosses, and the search prunes everything beyond)...
         pool_window_res: ...and the witnesses' pool those within this, taken at the first
-            contact and again wherever the climb has moved...
+            contact and again wherever the climb has moved (at least `window_res`: the pool
+            only names the pairs a refutation asks, which is exact whichever it asks, so
+            this moves the cost, never a table; a wider pool costs a wider first touch and
+            more features to pick from for every move)...
         pool_reach_moves: ...this many finest moves from where it was taken.
         contact_tol_res: the features within this of touching are the near-active ones (the
             model that orders the moves and prunes the proof) and the reported contacts.
@@ -66,7 +69,7 @@ class SettleTuning:
 
     standoff_res: float = 1.0 / 1024.0
     window_res: float = 0.3
-    pool_window_res: float = 2.0
+    pool_window_res: float = 0.6
     pool_reach_moves: float = 4.0
     contact_tol_res: float = 0.25
     room_share: float = 0.25
