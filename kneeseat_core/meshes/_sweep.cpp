@@ -31,7 +31,6 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <functional>
 #include <limits>
 #include <utility>
 #include <vector>
@@ -807,6 +806,9 @@ bool get_sized(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t co
     return false;
 }
 
+// How many of a move's witnesses are ranked in the first pass (witness_short).
+constexpr int kFirstWitnesses = 8;
+
 // Whether the pair of triangles (moving face, fixed face, as given) closes short of
 // `needed` with the moving body placed by the sweep (the least gap over the overlap of
 // their shadows; a pair lying wholly more than `behind` below not counting); the moving
@@ -847,30 +849,40 @@ bool vertex_short(Sweep &s, std::vector<int32_t> &vertices, double needed, doubl
 // to `picked` (all of them where none is short).
 bool witness_short(Sweep &s, const double *gaps, const double *slopes, const int64_t *faces, Py_ssize_t k,
                    const double *offset, Py_ssize_t count, double needed, double behind, double deepest,
-                   std::vector<std::pair<double, int32_t>> &heap, std::vector<int64_t> &picked,
+                   std::vector<std::pair<double, int32_t>> &ranked, std::vector<int64_t> &picked,
                    std::vector<int32_t> &vertices, std::vector<int32_t> &stack) {
-    heap.resize(k);
-    Py_ssize_t least = 0;
+    // one pass ranks every feature and keeps the first few in order (most moves are refuted
+    // by one of them, at no cost of ordering the rest); the rest are ordered only when
+    // those are not short
+    ranked.resize(k);
+    std::pair<double, int32_t> first[kFirstWitnesses];
+    int kept = 0;
     for (Py_ssize_t j = 0; j < k; ++j) {
         const double *a = slopes + 3 * j;
-        heap[j] = {gaps[j] + a[0] * offset[0] + a[1] * offset[1] + a[2] * offset[2], static_cast<int32_t>(j)};
-        if (heap[j] < heap[least]) least = j;
+        const std::pair<double, int32_t> f = {gaps[j] + a[0] * offset[0] + a[1] * offset[1] + a[2] * offset[2],
+                                              static_cast<int32_t>(j)};
+        ranked[j] = f;
+        if (kept == kFirstWitnesses && !(f < first[kept - 1])) continue;
+        int at = kept < kFirstWitnesses ? kept++ : kFirstWitnesses - 1;
+        for (; at > 0 && f < first[at - 1]; --at) first[at] = first[at - 1];
+        first[at] = f;
     }
     picked.clear();
     vertices.clear();
-    if (k == 0 || count == 0) return vertex_short(s, vertices, needed, deepest, stack);
-    // the first closing first: most moves are refuted by it, at no cost of ordering the rest
-    std::swap(heap[0], heap[least]);
-    const int64_t *first = faces + 2 * heap[0].second;
-    picked.insert(picked.end(), first, first + 2);
-    if (pair_short(s, first, needed, behind, vertices)) return true;
-    const Py_ssize_t n = std::min(count, k);
-    if (n < k) std::nth_element(heap.begin() + 1, heap.begin() + n, heap.end());
-    std::sort(heap.begin() + 1, heap.begin() + n);
-    for (Py_ssize_t r = 1; r < n; ++r) {
-        const int64_t *pair = faces + 2 * heap[r].second;
+    const Py_ssize_t n = std::min(count, k), asked = std::min<Py_ssize_t>(n, kept);
+    for (Py_ssize_t r = 0; r < asked; ++r) {
+        const int64_t *pair = faces + 2 * first[r].second;
         picked.insert(picked.end(), pair, pair + 2);
         if (pair_short(s, pair, needed, behind, vertices)) return true;
+    }
+    if (n > asked) {
+        if (n < k) std::nth_element(ranked.begin(), ranked.begin() + n, ranked.end());
+        std::sort(ranked.begin(), ranked.begin() + n);
+        for (Py_ssize_t r = asked; r < n; ++r) {
+            const int64_t *pair = faces + 2 * ranked[r].second;
+            picked.insert(picked.end(), pair, pair + 2);
+            if (pair_short(s, pair, needed, behind, vertices)) return true;
+        }
     }
     return vertex_short(s, vertices, needed, deepest, stack);
 }
@@ -916,14 +928,14 @@ PyObject *first_unrefuted(PyObject *, PyObject *args) {
     const double *p = static_cast<const double *>(bufs[0].buf), *needed = static_cast<const double *>(bufs[1].buf);
     const double *gaps = static_cast<const double *>(bufs[2].buf), *slopes = static_cast<const double *>(bufs[3].buf);
     const double *offsets = static_cast<const double *>(bufs[5].buf);
-    std::vector<std::pair<double, int32_t>> heap;
+    std::vector<std::pair<double, int32_t>> ranked;
     std::vector<int64_t> picked;
     std::vector<int32_t> vertices, stack;
     Py_ssize_t i = start;
     for (; i < m; ++i) {
         if (!std::isfinite(needed[i])) continue;
         s.place(p + 16 * i);
-        if (!witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], behind, deepest, heap,
+        if (!witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], behind, deepest, ranked,
                            picked, vertices, stack))
             break;
     }
