@@ -214,3 +214,40 @@ def test_implausibly_large_mesh_suggests_units_mm(tmp_path: Path) -> None:
     message = str(info.value)
     assert '--units mm' in message and str(path) in message and '\n' not in message
     assert load_mesh(path, units='mm').extents.max() == pytest.approx(0.08)
+
+
+def test_collision_pairs_sharing_bodies_each_answer_for_their_own_placing() -> None:
+    """Pairs made in one thread share python-fcl's object per body: a body that is the
+    moving one of a pair and the fixed one of another, queried in turn and from two
+    threads at once, answers as a pair with its own objects does (an independent box
+    overlap: the boxes are aligned)."""
+    import threading
+
+    from kneeseat_core.meshes.collision import CollisionPair, RigidBody
+
+    a = RigidBody.from_mesh(trimesh.creation.box(extents=(0.02, 0.02, 0.02)))
+    b = RigidBody.from_mesh(trimesh.creation.box(extents=(0.04, 0.01, 0.01)))
+    shifts = np.linspace(-0.05, 0.05, 40)      # none where the boxes just touch
+
+    def expected(shift: float) -> bool:       # |shift| below the half extents' sum
+        return abs(shift) < 0.01 + 0.02 - 1e-9
+
+    def pose(shift: float) -> np.ndarray:
+        out = np.eye(4)
+        out[0, 3] = shift
+        return out
+
+    def run(errors: list[str]) -> None:
+        forward, backward = CollisionPair(a, b), CollisionPair(b, a)
+        for shift in shifts:
+            for pair in (forward, backward):
+                if pair.collides(pose(shift)) != expected(shift):
+                    errors.append(f'{shift:+.4f} m')
+    errors: list[str] = []
+    run(errors)
+    threads = [threading.Thread(target=run, args=(errors,)) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert not errors and not any(t.is_alive() for t in threads)
