@@ -160,6 +160,52 @@ def test_verify_judges_only_the_cells_claimed_at_rest(built: tuple[Path, Path], 
     assert all(c['converged'] for c in report['cells'])
 
 
+def test_verify_changed_from_judges_the_cells_that_moved(built: tuple[Path, Path],
+                                                         tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]
+                                                         ) -> None:
+    """`--changed-from OLD` judges the cells whose pose differs from OLD's by more than the
+    resolution: none against the table itself; exactly the one cell slid 3 mm across the
+    push off its rest, which the referee finds gains (a pose lifted along the push would
+    not: it drops back to the same rest); a table of another grid is refused in one
+    line."""
+    from dataclasses import replace
+
+    from kneeseat_core.knee import config_from_metadata
+    from kneeseat_core.table import with_hash, write_table
+    table = read_table(built[0])
+    assert main(['verify', str(built[0]), '--changed-from', str(built[0]), '--workers', '1',
+                 '--quiet', '--no-extent', '--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report['changed'] == 0 and report['cells'] == []
+    b = 0
+    i, j = (int(k) for k in np.argwhere(np.asarray(table.converged)[b])[0])
+    config = config_from_metadata(table.metadata)
+    push = np.asarray(config.params(config.bodies[b], float(table.flexion_rad[i]),
+                                    float(table.varus_rad[j])).push, dtype=float)
+    across = np.cross(push, [0.0, 0.0, 1.0])
+    position = np.array(table.position_m)
+    position[b, i, j] += 3e-3 * across / np.linalg.norm(across)
+    slid = tmp_path / 'slid.npz'
+    write_table(slid, with_hash(replace(table, position_m=position)))
+    assert main(['verify', str(slid), '--changed-from', str(built[0]), '--workers', '1',
+                 '--quiet', '--no-extent', '--json']) == 3
+    report = json.loads(capsys.readouterr().out)
+    assert report['changed'] == 1 and report['not_at_rest'] == 1
+    (cell,) = report['cells']
+    assert (cell['body'], cell['flexion_deg'], cell['varus_deg']) == (
+        table.bodies[b], float(np.degrees(table.flexion_rad[i])),
+        float(np.degrees(table.varus_rad[j])))
+    assert cell['gain_m'] > 1.5e-3
+    other = tmp_path / 'other_grid.npz'
+    write_table(other, with_hash(replace(table, flexion_rad=np.array(table.flexion_rad) + 0.01)))
+    assert main(['verify', str(slid), '--changed-from', str(other), '--quiet']) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
+    assert f'--changed-from {other}: ' in lines[0] and 'same config and grid' in lines[0]
+
+
 def test_verify_says_where_the_meshes_went(built: tuple[Path, Path], tmp_path: Path,
                                            capsys: pytest.CaptureFixture[str]) -> None:
     assert main(['verify', str(built[0]), '--mesh-dir', str(tmp_path), '--quiet']) == 2

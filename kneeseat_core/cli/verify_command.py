@@ -46,12 +46,17 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 def _verify_table_cmd(args: argparse.Namespace) -> int:
     from kneeseat_core.knee import config_from_metadata, ligaments_from_metadata  # trimesh
     from kneeseat_core.meshes import check_mesh_files
-    from kneeseat_core.referee import mesh_file, sample_cells, verify_table  # fcl, scipy
+    from kneeseat_core.referee import (changed_cells, mesh_file, sample_cells,  # fcl, scipy
+                                       verify_table)
     from kneeseat_core.sweep import executor_for
     if args.fixed or args.moving or args.pose:
         raise TableError('give either a TABLE or --fixed/--moving/--pose, not both')
     if args.sample is not None and args.sample < 1:
         raise TableError(f'--sample {args.sample}: give a positive number of cells')
+    if args.sample is not None and args.changed_from is not None:
+        raise TableError('give --sample or --changed-from, not both')
+    if not (args.changed_deg >= 0.0):
+        raise TableError(f'--changed-deg {args.changed_deg}: give an angle of 0 or more')
     table = read_table(args.table)
     config = config_from_metadata(table.metadata)
     mesh_dir = None if args.mesh_dir is None else str(args.mesh_dir)
@@ -64,8 +69,16 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
                         f'meshes')
     check_mesh_files(paths, config.units)     # warnings once, here; workers load quietly
     ligaments_from_metadata(table.metadata, args.mesh_dir)    # there, and the table's
-    cells = sample_cells(table, args.sample, args.seed)
     resolution = float(table.metadata.get('settle', {}).get('resolution_m', 1e-4))
+    changed = None
+    if args.changed_from is None:
+        cells = sample_cells(table, args.sample, args.seed)
+    else:
+        try:
+            cells, changed = changed_cells(table, read_table(args.changed_from), resolution,
+                                           args.changed_deg)
+        except TableError as e:
+            raise TableError(f'--changed-from {args.changed_from}: {e}') from None
     executor, close = executor_for(args.workers, None)
     verdicts: list[CellVerdict] = []
     try:
@@ -79,10 +92,17 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
     verdicts.sort(key=lambda v: (v.body, -v.flexion_deg, v.varus_deg))
     bad = [v for v in verdicts if v.converged and v.gain_m > resolution]
     unclaimed = int(np.size(table.status) - np.isin(table.status, AT_REST).sum())
+    differ = '' if changed is None else (
+        f'{changed} cells differ from {args.changed_from} by more than the resolution '
+        f'({resolution * 1e3:g} mm) or {args.changed_deg:g} deg; ')
     if args.json:
-        print(json.dumps({'table': str(args.table), 'resolution_m': resolution,
-                          'cells': [v.as_json() for v in verdicts],
-                          'not_at_rest': len(bad), 'not_converged': unclaimed}))
+        report = {'table': str(args.table), 'resolution_m': resolution,
+                  'cells': [v.as_json() for v in verdicts],
+                  'not_at_rest': len(bad), 'not_converged': unclaimed}
+        if changed is not None:
+            report.update(changed_from=str(args.changed_from), changed_deg=args.changed_deg,
+                          changed=changed)
+        print(json.dumps(report))
     else:
         for v in verdicts:
             print(v.line(resolution))
@@ -94,8 +114,8 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
             f'; within a resolution of their best the rests move up to '
             f'{max(v.extent_m or 0.0 for v in extents) * 1e3:.2f} mm and '
             f'{max(v.extent_deg or 0.0 for v in extents):.2f} deg')
-        print(f'{len(verdicts)} cells claimed at rest judged: {len(bad)} gain more than the '
-              f'resolution ({resolution * 1e3:g} mm); largest gain {worst * 1e3:.3f} mm'
+        print(f'{differ}{len(verdicts)} cells claimed at rest judged: {len(bad)} gain more '
+              f'than the resolution ({resolution * 1e3:g} mm); largest gain {worst * 1e3:.3f} mm'
               f'{spread}{unjudged}')
     return EXIT_NOT_AT_REST if bad else EXIT_AT_REST
 
@@ -147,6 +167,12 @@ def register_command(sub: Subcommands) -> None:
     p.add_argument('--sample', type=int, metavar='N',
                    help='verify N cells spread over the grid (default: all cells)')
     p.add_argument('--seed', type=int, default=20261201, help='seed of the sample')
+    p.add_argument('--changed-from', type=Path, metavar='OLD',
+                   help='verify the cells whose pose differs from those of the table OLD '
+                   '(same config and grid) by more than the resolution or --changed-deg')
+    p.add_argument('--changed-deg', type=float, default=0.15, metavar='DEG',
+                   help='with --changed-from: a cell turned by more than this differs too '
+                   '(default 0.15, about the arc of a resolution at 40 mm)')
     p.add_argument('--workers', type=int, default=default_workers(),
                    help=f'worker processes (default: all cores, here {default_workers()})')
     p.add_argument('--mesh-dir', type=Path, help="directory that holds the table's meshes")

@@ -5,8 +5,8 @@ scipy's Nelder-Mead; `cells` judges the cells a table claims at rest, each from 
 table's own record of its problem. Nothing here imports `kneeseat_core.settle`
 (test/test_layers.py pins it).
 """
-from .cells import body_load, CellVerdict, mesh_file, sample_cells, verify_table
+from .cells import body_load, CellVerdict, changed_cells, mesh_file, sample_cells, verify_table
 from .judge import Envelope, Referee, Verdict
 
-__all__ = ['Envelope', 'Verdict', 'Referee', 'CellVerdict', 'sample_cells', 'verify_table',
-           'mesh_file', 'body_load']
+__all__ = ['Envelope', 'Verdict', 'Referee', 'CellVerdict', 'sample_cells', 'changed_cells',
+           'verify_table', 'mesh_file', 'body_load']

@@ -23,7 +23,7 @@ from typing import Any, Iterator, Mapping, Sequence
 import numpy as np
 import trimesh
 
-from kneeseat_core.errors import NoContactError
+from kneeseat_core.errors import NoContactError, TableError
 from kneeseat_core.geometry import carried, matrix_from_quat, pose_from
 from kneeseat_core.knee import (BodySpec, config_from_metadata, KneeConfig,
                                 ligaments_from_metadata, neutral_pose)
@@ -35,7 +35,8 @@ from kneeseat_core.table import PoseTable, read_table
 from kneeseat_core.typed import Pose
 from .judge import Envelope, Load, Referee
 
-__all__ = ['CellVerdict', 'sample_cells', 'verify_table', 'mesh_file', 'body_load']
+__all__ = ['CellVerdict', 'sample_cells', 'changed_cells', 'verify_table', 'mesh_file',
+           'body_load']
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,6 +130,41 @@ def sample_cells(table: PoseTable, count: int | None, seed: int = 20261201
             if queue and len(picked) < count:
                 picked.append(queue.pop(0))
     return sorted(picked)
+
+
+def changed_cells(table: PoseTable, before: PoseTable, moved_m: float, turned_deg: float
+                  ) -> tuple[list[tuple[int, int, int]], int]:
+    """The cells (body, flexion index, varus index) that `table` claims at rest and whose
+    pose differs from `before`'s by more than `moved_m` in position or more than
+    `turned_deg` in orientation (a body copied across varus: its centre column only), and
+    how many cells differ that way, claimed at rest or not.
+
+    Raises:
+        TableError: `before` has other bodies or another grid.
+    """
+    if (tuple(before.bodies) != tuple(table.bodies)
+            or not np.array_equal(before.flexion_rad, table.flexion_rad)
+            or not np.array_equal(before.varus_rad, table.varus_rad)):
+        raise TableError(
+            f'the table to compare with holds {", ".join(before.bodies)} on '
+            f'{len(before.flexion_rad)} x {len(before.varus_rad)} cells, this one '
+            f'{", ".join(table.bodies)} on {len(table.flexion_rad)} x {len(table.varus_rad)}; '
+            'compare two tables of the same config and grid')
+    moved = np.linalg.norm(np.asarray(table.position_m) - np.asarray(before.position_m), axis=-1)
+    cosine = np.abs(np.sum(np.asarray(table.orientation_xyzw)
+                           * np.asarray(before.orientation_xyzw), axis=-1))
+    turned = np.degrees(2.0 * np.arccos(np.clip(cosine, 0.0, 1.0)))
+    differs = (moved > moved_m) | (turned > turned_deg)
+    nb, _, nv = differs.shape
+    v0 = int(np.argmin(np.abs(table.varus_rad)))
+    claimed = np.isin(table.status, AT_REST)
+    cells, count = [], 0
+    for b in range(nb):
+        columns = [v0] if _copied_across_varus(table, b) else list(range(nv))
+        count += int(differs[b][:, columns].sum())
+        cells += [(b, int(i), columns[int(k)])
+                  for i, k in np.argwhere((differs[b] & claimed[b])[:, columns])]
+    return cells, count
 
 
 @dataclass(frozen=True, slots=True)
