@@ -214,8 +214,9 @@ class SweepPair:
     def first_unrefuted(self, poses: Floats, needed: Floats, pool: tuple[Floats, Floats, Ints],
                         offsets: Floats, count: int, behind: float, deepest: float,
                         start: int = 0) -> tuple[int, Ints | None]:
-        """The first of `poses` (m, 4, 4) from `start` on that its witnesses do not refute,
-        and those witnesses (c, 2), or (m, None) when every pose is refuted. A pose whose
+        """The index of the first of `poses` (m, 4, 4), from `start` on, that none of its
+        witnesses refutes, and those witnesses (c, 2) to seed its search; (m, None) when
+        every pose is refuted. A pose whose
         travel `needed` (m,) is not finite is passed over (it cannot gain); one is refuted
         where a contact closes short of the travel it needs: the travel from it is no longer
         than any contact's gap, so it cannot go that far.
