@@ -33,7 +33,7 @@ from .errors import ConfigError
 from .typed import Floats, Pose, Vec3
 
 __all__ = ['Tolerances', 'TOL', 'unit', 'rotation_about', 'pose_from', 'carried',
-           'rotation_angle', 'quat_from_matrix', 'matrix_from_quat', 'KneeAxes']
+           'rotation_angle', 'quat_angles', 'quat_from_matrix', 'matrix_from_quat', 'KneeAxes']
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,6 +146,14 @@ def rotation_angle(a: Floats, b: Floats) -> float:
     # commands (they never call this) do without
     from scipy.spatial.transform import Rotation
     return float(Rotation.from_matrix(np.asarray(a).T @ np.asarray(b)).magnitude())
+
+
+def quat_angles(a: Floats, b: Floats) -> Floats:
+    """Angles (rad) of the rotations between unit quaternions `a` and `b` (..., 4), each
+    pair's (either sign of a quaternion is the same rotation)."""
+    dot = np.clip(np.abs(np.sum(np.asarray(a) * np.asarray(b), axis=-1)), 0.0, 1.0)
+    out: Floats = 2.0 * np.arccos(dot)
+    return out
 
 
 def quat_from_matrix(rotation: Floats) -> Floats:

@@ -24,7 +24,7 @@ import numpy as np
 import trimesh
 
 from kneeseat_core.errors import NoContactError, TableError
-from kneeseat_core.geometry import carried, matrix_from_quat, pose_from
+from kneeseat_core.geometry import carried, matrix_from_quat, pose_from, quat_angles
 from kneeseat_core.knee import (BodySpec, config_from_metadata, KneeConfig,
                                 ligaments_from_metadata, neutral_pose)
 from kneeseat_core.ligaments import LigamentSet
@@ -151,9 +151,7 @@ def changed_cells(table: PoseTable, before: PoseTable, moved_m: float, turned_de
             f'{", ".join(table.bodies)} on {len(table.flexion_rad)} x {len(table.varus_rad)}; '
             'compare two tables of the same config and grid')
     moved = np.linalg.norm(np.asarray(table.position_m) - np.asarray(before.position_m), axis=-1)
-    cosine = np.abs(np.sum(np.asarray(table.orientation_xyzw)
-                           * np.asarray(before.orientation_xyzw), axis=-1))
-    turned = np.degrees(2.0 * np.arccos(np.clip(cosine, 0.0, 1.0)))
+    turned = np.degrees(quat_angles(table.orientation_xyzw, before.orientation_xyzw))
     differs = (moved > moved_m) | (turned > turned_deg)
     nb, _, nv = differs.shape
     v0 = int(np.argmin(np.abs(table.varus_rad)))

@@ -16,7 +16,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from kneeseat_core.geometry import matrix_from_quat, quat_from_matrix
+from kneeseat_core.geometry import matrix_from_quat, quat_angles, quat_from_matrix
 from kneeseat_core.typed import Bools, Floats
 
 __all__ = ['BOUND_M', 'BOUND_RAD', 'neighbour_steps', 'continuity']
@@ -48,8 +48,7 @@ def neighbour_steps(position_m: Floats, orientation_xyzw: Floats,
         dp = np.linalg.norm(np.diff(p, axis=axis), axis=-1)
         lo = np.take(q, range(q.shape[axis] - 1), axis=axis)
         hi = np.take(q, range(1, q.shape[axis]), axis=axis)
-        dot = np.clip(np.abs(np.sum(lo * hi, axis=-1)), 0.0, 1.0)
-        out[name] = (dp, 2.0 * np.arccos(dot))
+        out[name] = (dp, quat_angles(lo, hi))
     return out
 
 
