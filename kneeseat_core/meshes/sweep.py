@@ -241,9 +241,8 @@ class SweepPair:
             np.ascontiguousarray(faces, dtype=np.int64),
             np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(behind),
             float(deepest), int(start))
-        witnesses = np.frombuffer(raw, dtype=np.int64).reshape(-1, 2) if index < len(poses) \
-            else np.zeros((0, 2), dtype=np.int64)
-        return index, (witnesses if len(witnesses) else None)
+        # the engine sends no witnesses when every pose is refuted
+        return index, (np.frombuffer(raw, dtype=np.int64).reshape(-1, 2) if raw else None)
 
 
 def _finite(limit: float) -> float:
