@@ -32,6 +32,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <utility>
 #include <vector>
 
@@ -154,12 +155,13 @@ struct View {
     const Body *body;
     double d[3], u[3], w[3];
     int side;                          // +1: the faces whose outside faces +d take part
-    std::vector<double> shadow;        // (n, 3): u, w, h of each vertex
+    // filled as asked, never cleared beforehand: a flag says what holds a value
+    std::unique_ptr<double[]> shadow;  // (n, 3): u, w, h of each vertex
     std::vector<uint8_t> has_shadow;
-    std::vector<Bound> bounds;
+    std::unique_ptr<Bound[]> bounds;
     std::vector<uint8_t> has_bound;
     // the moving body's vertices placed for the current query (fixed view coordinates)
-    std::vector<double> placed;
+    std::unique_ptr<double[]> placed;
     std::vector<uint32_t> placed_stamp;
 
     View(const Body &b, const double *direction, int side_);
@@ -184,9 +186,9 @@ View::View(const Body &b, const double *direction, int side_) : body(&b), side(s
     for (int k = 0; k < 3; ++k) d[k] = direction[k];
     across(d, u, w);
     size_t nv = b.vertices.size() / 3;
-    shadow.resize(3 * nv);
+    shadow.reset(new double[3 * nv]);
     has_shadow.assign(nv, 0);
-    bounds.resize(b.nodes.size());
+    bounds.reset(new Bound[b.nodes.size()]);
     has_bound.assign(b.nodes.size(), 0);
 }
 
@@ -628,7 +630,7 @@ int view_init(PyView *self, PyObject *args, PyObject *) {
         delete self->view;
         self->view = new View(*reinterpret_cast<PyBody *>(bo)->body, d, side);
         size_t nv = self->view->body->vertices.size() / 3;
-        self->view->placed.resize(3 * nv);
+        self->view->placed.reset(new double[3 * nv]);
         self->view->placed_stamp.assign(nv + 1, 0);
         Py_INCREF(bo);
         Py_XDECREF(self->body);
