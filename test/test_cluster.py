@@ -30,7 +30,7 @@ from kneeseat_core.sweep.cluster import _forward, dask_executor, worker_stats
 from kneeseat_core.errors import ConfigError, KneeseatError, MeshError
 from kneeseat_core.geometry import pose_from
 from kneeseat_core.knee import KneeConfig, load_config
-from kneeseat_core.sweep import ChainJob, make_table, process_executor, run_chain, SceneSpec, sweep
+from kneeseat_core.sweep import ChainJob, make_table, run_chain, SceneSpec, sweep
 from kneeseat_core.files import file_sha256
 from kneeseat_core.table import PoseTable, read_table
 
@@ -218,23 +218,6 @@ def test_a_worker_that_runs_a_chain_keeps_blas_to_one_thread(small_config: KneeC
     assert after == {1}
     if (os.cpu_count() or 1) > 1:
         assert max(before) > 1          # a fresh worker had more: the limit is the chain's
-
-
-def test_the_process_pool_starts_every_worker_with_the_settle_code_at_once() -> None:
-    # a sweep starts from one centre cell: a pool that started a worker only when a task
-    # found none idle would start the second when the first chain was already running
-    before = {p.pid for p in multiprocessing.active_children()}
-    pool = process_executor(2)
-    try:
-        started = {p.pid for p in multiprocessing.active_children()} - before
-        assert len(started) == 2
-        ask = ("__import__('os').getpid(), "
-               "'kneeseat_core.sweep.chains' in __import__('sys').modules")
-        answers = [pool.submit(eval, ask).result(timeout=DEADLINE_S) for _ in range(4)]
-    finally:
-        pool.shutdown(wait=True)
-    assert {pid for pid, _ in answers} <= started
-    assert all(imported for _, imported in answers)
 
 
 def test_workers_without_the_files_settle_from_shipped_bytes(

@@ -3,18 +3,11 @@
 In-process for one worker (`InlineExecutor`), a process pool of spawned workers for more,
 or a Dask cluster (`kneeseat_core.sweep.cluster`, imported only when a scheduler is given:
 Dask adds seconds to the start-up of every build that does not use it).
-
-The pool starts every worker at once, each importing the settle code as it starts, while
-the parent reads the config and checks the meshes. Left to itself, a pool starts a worker
-only when a task finds none idle; a sweep starts from one centre cell, so the second worker
-was started only then and joined the total knee's build 2.5 s after the first.
 """
 from __future__ import annotations
 
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
-import importlib
 import multiprocessing
-import os
 from typing import Callable, ParamSpec, TypeVar
 
 __all__ = ['InlineExecutor', 'process_executor', 'executor_for']
@@ -40,22 +33,11 @@ class InlineExecutor(Executor):
 
 
 def process_executor(workers: int) -> Executor:
-    """The default executor: in-process for one worker, else a process pool of `workers`
-    spawned processes, every one started now (module docstring)."""
+    """The default executor: in-process for one worker, else a process pool (spawn)."""
     if workers <= 1:
         return InlineExecutor()
-    pool = ProcessPoolExecutor(max_workers=workers, initializer=_import_settle_code,
+    return ProcessPoolExecutor(max_workers=workers,
                                mp_context=multiprocessing.get_context('spawn'))
-    for _ in range(workers):
-        # a task submitted while no worker is idle starts one more (up to `workers`)
-        pool.submit(os.getpid)
-    return pool
-
-
-def _import_settle_code() -> None:
-    """A worker's first act: import what a chain runs (numpy, trimesh, python-fcl, the
-    settle), while the parent is still reading the config and hashing the meshes."""
-    importlib.import_module('kneeseat_core.sweep.chains')
 
 
 def executor_for(workers: int, scheduler: str | None) -> tuple[Executor, Callable[[], None]]:
