@@ -1,0 +1,126 @@
+"""Where a table's settles spend their time: in each compiled part, or in the Python around them.
+
+Run: `python benchmarks/settle_costs.py [--knees tka,natural,default] [--flexion-grid
+-30,-50,-1] [--varus-grid -10,10,1]`. Builds a slice of each knee's table in this process
+(`kneeseat build --workers 1`) and times every call into the compiled parts a settle
+uses: the exact travel's searches (`_sweep.contacts`, `_sweep.travels`), the witnesses
+(`_sweep.first_unrefuted`), python-fcl (`fcl.collide`), the ligaments (`_tissue.pushes`)
+and the linear program (`_simplex.maximise`). What is left of the settles' time is Python
+and numpy around them. Prints, per knee, milliseconds a settle for each part, its calls a
+settle and its share. Timing a call costs about a microsecond, so the Python share is
+overstated by about that much per call (the calls a settle are printed).
+"""
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+import sys
+import tempfile
+import time
+from typing import Any
+
+import fcl
+
+from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA
+from kneeseat_core.cli import main as kneeseat
+from kneeseat_core import _tissue
+from kneeseat_core.meshes import _sweep
+from kneeseat_core.settle import _simplex
+from kneeseat_core.sweep import chains
+from machine import describe_machine
+
+REPO = Path(__file__).resolve().parents[1]
+# part -> the module attributes a settle calls it through
+PARTS: dict[str, list[tuple[Any, str]]] = {
+    'exact searches': [(_sweep, 'contacts'), (_sweep, 'travels')],
+    'witnesses': [(_sweep, 'first_unrefuted')],
+    'python-fcl': [(fcl, 'collide')],
+    'ligaments': [(_tissue, 'pushes')],
+    'linear program': [(_simplex, 'maximise')],
+}
+
+
+class Clock:
+    """Seconds and calls per part, filled by the wrappers `timed` installs."""
+
+    def __init__(self) -> None:
+        self.seconds = {part: 0.0 for part in (*PARTS, 'settles')}
+        self.calls = {part: 0 for part in self.seconds}
+
+    def timed(self, part: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        """`fn`, its time and calls added to `part`."""
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            started = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[part] += time.perf_counter() - started
+                self.calls[part] += 1
+        return wrapper
+
+
+def measure(knee: str, grid: list[str], data: dict[str, Path], out: Path) -> Clock:
+    """Build `knee`'s slice `grid` in this process with every compiled part timed."""
+    clock = Clock()
+    timed = {**PARTS, 'settles': [(chains, 'settle')]}
+    originals = [(owner, name, getattr(owner, name))
+                 for calls in timed.values() for owner, name in calls]
+    try:
+        for part, calls in timed.items():
+            for owner, name in calls:
+                setattr(owner, name, clock.timed(part, getattr(owner, name)))
+        args = ['build', '--out', str(out), '--workers', '1', '--quiet', *grid]
+        if knee in CONFIGS:
+            config, where = CONFIGS[knee]
+            args[1:1] = [str(REPO / 'config' / config), '--mesh-dir', str(data[where])]
+        if kneeseat(args) != 0:
+            raise SystemExit(f'{knee}: the build failed')
+    finally:
+        for owner, name, fn in originals:
+            setattr(owner, name, fn)
+    return clock
+
+
+def report(knee: str, clock: Clock) -> None:
+    """One line per part: ms a settle, calls a settle, share of the settles' time."""
+    settles = max(clock.calls['settles'], 1)
+    total = clock.seconds['settles']
+    print(f'{knee}: {clock.calls["settles"]} settles, {1e3 * total / settles:.2f} ms a settle')
+    rest = total
+    for part in PARTS:
+        spent = clock.seconds[part]
+        rest -= spent
+        print(f'  {part:15s} {1e3 * spent / settles:6.2f} ms  {clock.calls[part] / settles:6.1f} '
+              f'calls  {100 * spent / total:5.1f} %')
+    calls = sum(clock.calls[part] for part in PARTS) / settles
+    print(f'  {"Python, numpy":15s} {1e3 * rest / settles:6.2f} ms  (around {calls:.1f} calls)'
+          f'  {100 * rest / total:5.1f} %')
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--knees', default='tka,natural,default',
+                        help='comma list: default, tka, natural, natural_no_menisci')
+    parser.add_argument('--flexion-grid', default='-30,-50,-1', help='START,STOP,STEP degrees')
+    parser.add_argument('--varus-grid', default='-10,10,1', help='START,STOP,STEP degrees')
+    parser.add_argument('--data', type=Path, default=DEFAULT_DATA,
+                        help='directory of the total-knee meshes')
+    parser.add_argument('--natural-data', type=Path, default=NATURAL_DATA,
+                        help='directory of the natural-knee meshes')
+    args = parser.parse_args()
+    grid = [f'--flexion-grid={args.flexion_grid}', f'--varus-grid={args.varus_grid}']
+    data = {'data': args.data, 'natural_data': args.natural_data}
+    print(describe_machine())
+    with tempfile.TemporaryDirectory(prefix='settle_costs.') as tmp:
+        for knee in (k for k in args.knees.split(',') if k):
+            if knee in CONFIGS and not any(data[CONFIGS[knee][1]].glob('*.stl')):
+                print(f'skipping {knee}: no meshes in {data[CONFIGS[knee][1]]}',
+                      file=sys.stderr)
+                continue
+            report(knee, measure(knee, grid, data, Path(tmp) / f'{knee}.npz'))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
