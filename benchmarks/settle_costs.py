@@ -1,8 +1,9 @@
 """Where a table's settles spend their time: in each compiled part, or in the Python around them.
 
-Run: `python benchmarks/settle_costs.py [--knees tka,natural,default] [--flexion-grid
--30,-50,-1] [--varus-grid -10,10,1]`. Builds a slice of each knee's table in this process
-(`kneeseat build --workers 1`) and times every call into the compiled parts a settle
+Run: `python benchmarks/settle_costs.py [--knees tka,natural,default]
+[--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1]` (with `=`: a grid starts with a
+minus). Builds a slice of each knee's table in this process (`kneeseat build --workers
+1`) and times every call into the compiled parts a settle
 uses: the exact travel's searches (`_sweep.contacts`, `_sweep.travels`), the witnesses
 (`_sweep.first_unrefuted`), python-fcl (`fcl.collide`), the ligaments (`_tissue.pushes`)
 and the linear program (`_simplex.maximise`). What is left of the settles' time is Python
@@ -22,7 +23,7 @@ from typing import Any
 
 import fcl
 
-from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA
+from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA, REPO
 from kneeseat_core.cli import main as kneeseat
 from kneeseat_core import _tissue
 from kneeseat_core.meshes import _sweep
@@ -30,7 +31,6 @@ from kneeseat_core.settle import _simplex
 from kneeseat_core.sweep import chains
 from machine import describe_machine
 
-REPO = Path(__file__).resolve().parents[1]
 # part -> the module attributes a settle calls it through
 PARTS: dict[str, list[tuple[Any, str]]] = {
     'exact searches': [(_sweep, 'contacts'), (_sweep, 'travels')],
