@@ -11,22 +11,24 @@ setup(
     packages=find_packages(include=['kneeseat_core', 'kneeseat_core.*',
                                     'kneeseat_ros', 'kneeseat_ros.*']),
     package_data={'kneeseat_core': ['py.typed', 'data/*', 'meshes/_sweep.pyi',
-                                    'settle/_simplex.pyi', '_tissue.pyi']},
+                                    'settle/_simplex.pyi', 'settle/_moves.pyi']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml')),
     ],
     # compiled C++: the exact travel along the push (kneeseat_core/meshes/sweep.py), the
-    # climb's small linear program (kneeseat_core/settle/model.py) and the ligaments' rates
-    # at many poses (kneeseat_core/ligaments.py)
+    # climb's small linear program (kneeseat_core/settle/model.py) and the moves it tries,
+    # planned with the ligaments weighed (kneeseat_core/settle/planner.py)
     ext_modules=[Extension(name, [source], extra_compile_args=['-O3', '-std=c++17'],
-                           depends=['kneeseat_core/_buffers.h'], language='c++')
+                           depends=['kneeseat_core/_buffers.h', 'kneeseat_core/_tissue.h'],
+                           language='c++')
                  for name, source in (('kneeseat_core.meshes._sweep',
                                        'kneeseat_core/meshes/_sweep.cpp'),
                                       ('kneeseat_core.settle._simplex',
                                        'kneeseat_core/settle/_simplex.cpp'),
-                                      ('kneeseat_core._tissue', 'kneeseat_core/_tissue.cpp'))],
+                                      ('kneeseat_core.settle._moves',
+                                       'kneeseat_core/settle/_moves.cpp'))],
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='kneeseat developers',

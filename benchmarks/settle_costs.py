@@ -5,9 +5,10 @@ Run: `python benchmarks/settle_costs.py [--knees tka,natural,default]
 minus). Builds a slice of each knee's table in this process (`kneeseat build --workers
 1`) and times every call into the compiled parts a settle
 uses: the exact travel's searches (`_sweep.contacts`, `_sweep.travels`), the witnesses
-(`_sweep.first_unrefuted`), python-fcl (`fcl.collide`), the ligaments (`_tissue.pushes`)
-and the linear program (`_simplex.maximise`). What is left of the settles' time is Python
-and numpy around them. Prints, per knee, milliseconds a settle for each part, its calls a
+(`_sweep.first_unrefuted`), python-fcl (`fcl.collide`), the moves' plans (`Planner.plan`:
+their order, poses and lifts with the ligaments weighed, its thin wrapper included) and the
+linear program (`_simplex.maximise`). What is left of the settles' time is Python and
+numpy around them. Prints, per knee, milliseconds a settle for each part, its calls a
 settle and its share. Timing a call costs about a microsecond, so the Python share is
 overstated by about that much per call (the calls a settle are printed).
 """
@@ -25,9 +26,9 @@ import fcl
 
 from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA, REPO
 from kneeseat_core.cli import main as kneeseat
-from kneeseat_core import _tissue
 from kneeseat_core.meshes import _sweep
 from kneeseat_core.settle import _simplex
+from kneeseat_core.settle.planner import Planner
 from kneeseat_core.sweep import chains
 from machine import describe_machine
 
@@ -36,7 +37,7 @@ PARTS: dict[str, list[tuple[Any, str]]] = {
     'exact searches': [(_sweep, 'contacts'), (_sweep, 'travels')],
     'witnesses': [(_sweep, 'first_unrefuted')],
     'python-fcl': [(fcl, 'collide')],
-    'ligaments': [(_tissue, 'pushes')],
+    'move plans': [(Planner, 'plan')],
     'linear program': [(_simplex, 'maximise')],
 }
 

@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 
-from . import _tissue
 from .errors import ConfigError
 from .typed import Bools, Floats, Ints, Pose
 
@@ -317,19 +316,6 @@ class Tissue:
         m = moving.T @ pull
         torque = np.array([m[1, 2] - m[2, 1], m[2, 0] - m[0, 2], m[0, 1] - m[1, 0]])
         return energy, self.seg_sign @ pull, torque
-
-    def pushes_many(self, poses: Floats) -> tuple[Floats, Floats]:
-        """The energies (m,) and dE/dt (m, 3) that `rates` gives at each of `poses` (m, 4,
-        4), to rounding, computed at once (compiled, `_tissue.cpp`: 27 poses of the total
-        knee's 91 segments in about 50 us, a third of what numpy's stacked arrays took)."""
-        def floats(a: Floats) -> Floats:
-            return np.ascontiguousarray(a, dtype=np.float64)
-        raw_energies, raw_forces = _tissue.pushes(
-            floats(self.seg_local), floats(self.seg_sign), floats(self.seg_fixed),
-            np.ascontiguousarray(self.seg_fibre, dtype=np.int64), floats(self.slack_m),
-            floats(self.stiffness_n), floats(self.transition), floats(poses))
-        return np.frombuffer(raw_energies, dtype=np.float64).copy(), \
-            np.frombuffer(raw_forces, dtype=np.float64).reshape(-1, 3).copy()
 
 
 # ---- reading a set --------------------------------------------------------------------

@@ -16,7 +16,6 @@ from scipy.optimize import minimize_scalar
 import settle_cases as sc
 import shapes
 from conftest import SHARED_DATA
-from kneeseat_core import _tissue
 from kneeseat_core.errors import ConfigError, SettleError
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.knee import ligaments_from_metadata, load_config, materialise_default_knee
@@ -151,49 +150,6 @@ def test_a_chain_places_the_fibres_where_the_bodies_they_reach_rest_at_each_cell
 def test_bad_fibres_are_refused_with_the_key_named(items: list[object], message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         parse_ligaments(items, 'config ligaments', BODIES)
-
-
-def test_the_pushes_of_many_poses_at_once_are_each_pose_s_own_rates() -> None:
-    # the climb weighs a batch of moves at once (compiled) by what `rates` (numpy) gives one
-    # pose: the energy and its rate under translation agree to rounding
-    rng = np.random.default_rng(20261202)
-    items = [fibre(f'f{i}', [('femur', list(rng.normal(0, 0.02, 3))),
-                             ('tibia', list(rng.normal(0, 0.02, 3)))], 0.01 + 0.02 * rng.random())
-             for i in range(40)]
-    paths = items + [fibre(f'p{i}', [('femur', list(rng.normal(0, 0.02, 3))),
-                                     ('tibia', list(rng.normal(0, 0.02, 3))),
-                                     ('tibia', list(rng.normal(0, 0.02, 3)))], 0.05)
-                     for i in range(9)]
-    for fibres in (items, paths):          # one segment a fibre, and paths of several
-        tissue = parse_ligaments(fibres, 'test', BODIES).tissue('tibia', {'femur': np.eye(4)})
-        assert tissue is not None and tissue.single == (fibres is items)
-        poses = np.array([pose_from(rotation_about(rng.normal(size=3) / 3.0, rng.normal(0, 0.2)),
-                                    rng.normal(0, 0.005, 3)) for _ in range(64)])
-        for size in (0, 1, 4, 43):
-            energies, forces = tissue.pushes_many(poses[:size])
-            assert energies.shape == (size,) and forces.shape == (size, 3)
-            for pose, energy, force in zip(poses[:size], energies, forces):
-                alone_energy, alone_force, _ = tissue.rates(pose)
-                assert alone_energy > 0.0
-                assert abs(energy - alone_energy) <= 1e-12 * alone_energy
-                assert np.max(np.abs(force - alone_force)) <= 1e-12 * np.max(np.abs(alone_force))
-
-
-def test_the_compiled_pushes_refuse_bad_arrays_without_crashing() -> None:
-    """Wrong shapes, dtypes or a fibre index out of range are a Python error, never a crash."""
-    local, sign, fixed = np.zeros((2, 3)), np.ones(2), np.zeros((2, 3))
-    fibre_of, laws, poses = np.array([0, 1]), [np.ones(2)] * 3, np.eye(4)[None]
-    assert len(_tissue.pushes(local, sign, fixed, fibre_of, *laws, poses)[0]) == 8
-    with pytest.raises(ValueError):
-        _tissue.pushes(local, sign, fixed, np.array([0, 2]), *laws, poses)
-    with pytest.raises(ValueError):
-        _tissue.pushes(local[:1], sign, fixed, fibre_of, *laws, poses)
-    with pytest.raises(ValueError):
-        _tissue.pushes(local, sign, fixed, fibre_of, *laws, np.eye(3))
-    with pytest.raises(ValueError):
-        _tissue.pushes(local, sign, fixed, fibre_of.astype(np.float64), *laws, poses)
-    with pytest.raises(TypeError):
-        _tissue.pushes(local, sign, fixed, fibre_of, *laws, 'x')
 
 
 @pytest.mark.parametrize('knee, fibres', [('natural_knee', 76), ('tka_dm', 149)])

@@ -46,6 +46,7 @@ from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .model import best_move, feature_slopes, Model, STEEPEST
 from .objective import Objective, objective_for
+from .planner import Planner
 from .search import Contacts, LOST_CONTACT, Search, SettleResult, translated
 from .tuning import SettleTuning, TUNING
 
@@ -109,6 +110,7 @@ class _Climb:
         self.gain = self.objective.precision * tuning.move_gain_res * p.resolution_m
         self.scale = tuning.first_moves * self.finest
         self.directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (search.free == 0), axis=1)]
+        self.planner = Planner(search, self.objective, self.arm, self.standoff)
         self.here: _Place | None = None
         self.pool: _Witnesses | None = None
         self.failed: set[float] = set()     # scales that found nothing at the current pose
@@ -332,16 +334,14 @@ class _Climb:
         near = self.model(here, t.contact_tol_res * s.params.resolution_m,
                           t.room_share * float(np.max(np.abs(moves))))
         press, drive = self.objective.first_order(here.pose)
-        promise = moves @ drive
-        if len(near.gaps):
-            promise = promise + press * (near.travel(moves) - float(np.min(near.gaps)))
-        order = np.argsort(-promise, kind='stable')[:tries]
+        # ordered by what the near-active features promise (to first order they bound the
+        # travel after a move from above), each with the travel it must reach: one Newton
+        # step of the lift that gains (no more than the lift needed: the objective is
+        # concave along Δ) plus the standoff (a place stands that short of its travel), so
+        # a contact short of it refutes the move
+        order, targets, needed = self.planner.plan(here.pose, moves, near, press, drive,
+                                                   tries, gain, here.value + gain)
         moves = moves[order]
-        targets = s.laterals(here.pose, moves, self.arm)
-        # one Newton step of the lift that gains: no more than the lift needed (the
-        # objective is concave along Δ); a place stands the standoff short of its travel,
-        # so a contact short of the two together refutes the move
-        needed = self.objective.first_lifts(targets, here.pose, gain) + self.standoff
         pool = self.pool.model
         # penetration from a lateral move of length l is at most its steepest slope times l:
         # a vertex that far above a face is through it

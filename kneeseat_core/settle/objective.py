@@ -32,10 +32,20 @@ from kneeseat_core.ligaments import Tissue
 from kneeseat_core.typed import Floats, Pose
 from .search import Search
 
-__all__ = ['Objective', 'Travel', 'Work', 'objective_for']
+__all__ = ['LiftTerms', 'Objective', 'Travel', 'Work', 'objective_for']
 
 # Poses whose tissue evaluation a Work objective keeps.
 _SEEN = 4
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LiftTerms:
+    """What weighs the lift a move needs to gain (`Objective.lift_terms`)."""
+
+    work: bool                   # the load's work less the tissue's energy (else the travel)
+    load_n: float                # N, the load the work and energy are taken per unit of
+    toward: Floats | None        # (3,) the point the load pulls toward, or None: the push
+    tissue: Tissue | None        # the ligaments acting on the body, if any
 
 
 class Objective:
@@ -56,13 +66,13 @@ class Objective:
         order."""
         raise NotImplementedError
 
-    def first_lifts(self, targets: Floats, base: Pose, gain: float) -> Floats:
-        """(m,) for each of `targets` (m, 4, 4), lateral moves of `base`, how far along Δ it
-        must be lifted at least for the objective there to be `gain` above its value at
-        `base` (one Newton step from no lift; inf where the body is not pressed on). The
-        objective is concave along Δ (the load's work is; the energy is convex in each
-        length, each length convex along Δ), so the step lifts no higher than needed: a
-        contact short of it proves that the target cannot gain."""
+    def lift_terms(self) -> LiftTerms:
+        """What the planner (`kneeseat_core.settle.planner`) needs to weigh how far along Δ
+        each move it considers must be lifted for the objective there to gain: one Newton
+        step from no lift (inf where the body is not pressed on). The objective is concave
+        along Δ (the load's work is; the energy is convex in each length, each length convex
+        along Δ), so the step lifts no higher than needed: a contact short of it proves
+        that the move cannot gain."""
         raise NotImplementedError
 
     def pressing(self, pose: Pose) -> float:
@@ -90,9 +100,10 @@ class Travel(Objective):
         """The travel itself: (1, 0)."""
         return 1.0, np.zeros(3)
 
-    def first_lifts(self, targets: Floats, base: Pose, gain: float) -> Floats:
-        """`gain` for each: a lateral move leaves the depth along Δ as it was."""
-        return np.full(len(targets), gain)
+    def lift_terms(self) -> LiftTerms:
+        """The travel alone: a lateral move leaves the depth along Δ as it was, so a move
+        must reach the gain itself."""
+        return LiftTerms(False, 1.0, None, None)
 
     def pressing(self, pose: Pose) -> float:
         """Always pressed: the push is all there is."""
@@ -119,31 +130,9 @@ class Work(Objective):
     gain = "in the load's work less the ligaments' energy (per unit load)"
     precision = 0.1
 
-    def first_lifts(self, targets: Floats, base: Pose, gain: float) -> Floats:
-        """One Newton step from no lift for each of `targets` (the base class), the tissue
-        weighed at all of them at once."""
-        want = self.value(base) + gain
-        if self.tissue is None:
-            energies, forces = np.zeros(len(targets)), np.zeros((len(targets), 3))
-        else:
-            energies, forces = self.tissue.pushes_many(targets)
-        work, lines = self._works(targets)
-        slope = lines @ self.search.push - forces @ self.search.push / self.load_n
-        out = np.full(len(targets), math.inf)
-        pressed = slope > 0.0
-        out[pressed] = (want - (work[pressed] - energies[pressed] / self.load_n)) \
-            / slope[pressed]
-        return out
-
-    def _works(self, poses: Floats) -> tuple[Floats, Floats]:
-        """(m,) the load's work per unit load at each of `poses` (m, 4, 4) and (m, 3) its
-        line there (`_work` and `line`, for many poses at once)."""
-        centres = poses[:, :3, :3] @ self.search.pair.moving.centroid + poses[:, :3, 3]
-        if self.toward is None:
-            return centres @ self.search.push, np.broadcast_to(self.search.push, centres.shape)
-        d = self.toward - centres
-        length = np.sqrt(np.einsum('ij,ij->i', d, d))
-        return -length, d / length[:, None]
+    def lift_terms(self) -> LiftTerms:
+        """The load (its size and the point it pulls toward, if any) and the tissue."""
+        return LiftTerms(True, self.load_n, self.toward, self.tissue)
 
     def _along(self, force: Floats) -> float:
         """dE/ds / F: the tissue's rate along Δ per unit load, from its dE/dt `force`."""

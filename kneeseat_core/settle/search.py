@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from kneeseat_core.errors import SettleError
-from kneeseat_core.geometry import rotation_about, unit
+from kneeseat_core.geometry import unit
 from kneeseat_core.meshes import CollisionPair, SweepPair
 from kneeseat_core.params import SettleParams
 from kneeseat_core.status import AT_REST, Status
@@ -157,20 +157,6 @@ class Search:
         moving_c = pose[:3, :3] @ moving.bound_centre + pose[:3, 3]
         return float(np.linalg.norm(moving_c - fixed.bound_centre) + fixed.bound_radius
                      + moving.bound_radius)
-
-    def laterals(self, base: Pose, moves: Floats, arm: float) -> Floats:
-        """`base` (4, 4) slid by move[0] e1 + move[1] e2 and spun by move[2] / arm (rad)
-        about the axis through its centroid parallel to Δ, for each of `moves` (m, 3): (m,
-        4, 4). A spin about any other centre is this plus a slide."""
-        x = np.asarray(moves, dtype=np.float64) * self.free
-        rots = rotation_about(self.push, x[:, 2] / arm)
-        centre = self.centre(base)
-        out = np.empty((len(x), 4, 4))
-        out[:, :3, :3] = rots @ base[:3, :3]
-        out[:, :3, 3] = (rots @ (base[:3, 3] - centre)[:, None])[:, :, 0] + centre
-        out[:, 3] = (0.0, 0.0, 0.0, 1.0)
-        out[:, :3, 3] += x[:, 0:1] * self.e1 + x[:, 1:2] * self.e2
-        return out
 
     def offset(self, pose: Pose) -> tuple[Floats, float]:
         """Slide across Δ (e1, e2) of the centroid and spin about Δ (rad) from the anchor."""

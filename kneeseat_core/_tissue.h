@@ -1,0 +1,64 @@
+// The ligaments' energy and its rate under a translation at many poses of one body
+// (_tissue.cpp gives it to kneeseat_core/ligaments.py; settle/_moves.cpp weighs the moves
+// a climb considers with it).
+//
+// Each segment's vector is seg_local turned by the pose, plus seg_sign times the pose's
+// translation, plus seg_fixed; a fibre's length is the sum of its segments'; the force law
+// (Blankevoort 1991) with m the strain clipped to [0, e_t] and l what lies above e_t is
+// f = k (m^2 / (2 e_t) + l) and E / L0 = k (m^3 / (6 e_t) + m l / 2 + l^2 / 2).
+#ifndef KNEESEAT_TISSUE_H
+#define KNEESEAT_TISSUE_H
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+namespace kneeseat {
+
+// One body's fibres: s segments of f fibres (arrays as in ligaments.Tissue), owned.
+struct Fibres {
+    std::vector<double> local, sign, fixed, slack, stiffness, transition;   // (s, 3) (s,) (s, 3) (f,) x3
+    std::vector<int64_t> fibre;                                              // (s,) in [0, f)
+    // scratch of one evaluation
+    std::vector<double> vec, length, total, tension;
+
+    size_t segments() const { return sign.size(); }
+    size_t fibres() const { return slack.size(); }
+
+    // The energy and dE/dt (3,) at a (4, 4) pose.
+    double push(const double *pose, double *force) {
+        const size_t s = segments(), f = fibres();
+        vec.resize(3 * s);
+        length.resize(s);
+        total.assign(f, 0.0);
+        tension.resize(f);
+        for (size_t i = 0; i < s; ++i) {
+            const double *q = &local[3 * i];
+            double *v = &vec[3 * i];
+            for (int r = 0; r < 3; ++r)
+                v[r] = pose[4 * r] * q[0] + pose[4 * r + 1] * q[1] + pose[4 * r + 2] * q[2] +
+                       sign[i] * pose[4 * r + 3] + fixed[3 * i + r];
+            length[i] = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+            total[fibre[i]] += length[i];
+        }
+        double energy = 0.0;
+        for (size_t j = 0; j < f; ++j) {
+            double e = std::max(total[j] / slack[j] - 1.0, 0.0);
+            double toe_strain = std::min(e, transition[j]), over = e - toe_strain;
+            double toe = toe_strain * toe_strain / (2.0 * transition[j]);
+            tension[j] = stiffness[j] * (toe + over);
+            energy += stiffness[j] * (toe_strain * toe / 3.0 + over * (0.5 * toe_strain + 0.5 * over)) * slack[j];
+        }
+        force[0] = force[1] = force[2] = 0.0;
+        for (size_t i = 0; i < s; ++i) {
+            double scale = sign[i] * tension[fibre[i]] / std::max(length[i], 1e-12);
+            for (int r = 0; r < 3; ++r) force[r] += scale * vec[3 * i + r];
+        }
+        return energy;
+    }
+};
+
+}  // namespace kneeseat
+
+#endif

@@ -1,0 +1,332 @@
+// The moves a climb tries, planned at once (kneeseat_core/settle/planner.py is its Python
+// face; kneeseat_core/settle/climb.py, `_Climb._try`, asks it at every step): the order
+// the near-active features' first-order model promises, each move's pose (a slide across
+// the push and a spin about the axis through the body's centroid parallel to it), and the
+// travel along the push each must reach to gain (one Newton step of the lift, the
+// ligaments weighed at every pose: _tissue.h). A step considers up to 27 moves of a few
+// arrays each; numpy's calls on arrays that small cost several times their arithmetic.
+//
+// The pose of a move x = (slide e1, slide e2, arc): R = I + sin(a) K + (1 - cos(a)) K^2
+// with K the push's cross-product matrix and a = arc / arm, the body turned by R about its
+// centroid c and slid by x0 e1 + x1 e2. The lift: the objective at a lateral pose lifted by
+// s along the push is, per unit load, the load's work less the ligaments' energy; from no
+// lift its rate is l . push - dE/ds / F (l the load's line), and the lift that gains is
+// (want - value) / rate where the rate is positive (none otherwise: inf). The objective is
+// concave along the push, so the step lifts no higher than needed.
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <numeric>
+#include <vector>
+
+#include "../_buffers.h"
+#include "../_tissue.h"
+
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+struct Planner {
+    double push[3], e1[3], e2[3], free[3], centroid[3];
+    double arm = 1.0, standoff = 0.0, load_n = 1.0;
+    double k[9], k2[9];          // the push's cross-product matrix K and K @ K
+    bool work = false;           // the objective is the load's work less the energy
+    bool toward = false;         // the load pulls toward a point (else along the push)
+    double point[3] = {0.0, 0.0, 0.0};
+    bool tissue = false;
+    kneeseat::Fibres fibres;
+
+    // the pose (16,) of `base` moved by `move` (3,)
+    void lateral(const double *base, const double *move, double *out) const;
+    // the travel along the push the pose `target` must reach for the objective to be `want`
+    double lift(const double *target, double want);
+};
+
+void Planner::lateral(const double *base, const double *move, double *out) const {
+    const double x0 = move[0] * free[0], x1 = move[1] * free[1], x2 = move[2] * free[2];
+    const double a = x2 / arm, s = std::sin(a), c = std::cos(a);
+    double r[9];
+    for (int i = 0; i < 9; ++i) r[i] = ((i % 4 == 0 ? 1.0 : 0.0) + s * k[i]) + (1.0 - c) * k2[i];
+    double centre[3], rel[3];
+    for (int i = 0; i < 3; ++i) {
+        centre[i] = base[4 * i] * centroid[0] + base[4 * i + 1] * centroid[1] + base[4 * i + 2] * centroid[2] +
+                    base[4 * i + 3];
+        rel[i] = base[4 * i + 3] - centre[i];
+    }
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j)
+            out[4 * i + j] = r[3 * i] * base[j] + r[3 * i + 1] * base[4 + j] + r[3 * i + 2] * base[8 + j];
+        out[4 * i + 3] = (r[3 * i] * rel[0] + r[3 * i + 1] * rel[1] + r[3 * i + 2] * rel[2]) + centre[i] +
+                         (x0 * e1[i] + x1 * e2[i]);
+    }
+    out[12] = out[13] = out[14] = 0.0;
+    out[15] = 1.0;
+}
+
+double Planner::lift(const double *target, double want) {
+    double energy = 0.0, force[3] = {0.0, 0.0, 0.0};
+    if (tissue) energy = fibres.push(target, force);
+    double centre[3];
+    for (int i = 0; i < 3; ++i)
+        centre[i] = target[4 * i] * centroid[0] + target[4 * i + 1] * centroid[1] + target[4 * i + 2] * centroid[2] +
+                    target[4 * i + 3];
+    double value, line_push;
+    if (toward) {
+        double d[3] = {point[0] - centre[0], point[1] - centre[1], point[2] - centre[2]};
+        double length = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        value = -length;
+        line_push = (d[0] * push[0] + d[1] * push[1] + d[2] * push[2]) / length;
+    } else {
+        value = centre[0] * push[0] + centre[1] * push[1] + centre[2] * push[2];
+        line_push = 1.0;
+    }
+    const double slope = line_push - (force[0] * push[0] + force[1] * push[1] + force[2] * push[2]) / load_n;
+    return slope > 0.0 ? (want - (value - energy / load_n)) / slope : kInf;
+}
+
+// ---- Python -----------------------------------------------------------------------------
+
+struct PyPlanner {
+    PyObject_HEAD
+    Planner *planner;
+};
+
+PyTypeObject PlannerType = {PyVarObject_HEAD_INIT(nullptr, 0)};
+
+// `count` doubles of `obj` into `out` (a C-contiguous float64 buffer of exactly that many)
+bool read_doubles(PyObject *obj, Py_ssize_t count, double *out, const char *what) {
+    Py_buffer b;
+    if (!kneeseat::get_buffer(obj, &b, "d", 8, what, PyExc_ValueError)) return false;
+    bool ok = b.len == 8 * count;
+    if (ok) std::copy_n(static_cast<const double *>(b.buf), count, out);
+    else PyErr_Format(PyExc_ValueError, "Planner: %s has the wrong shape", what);
+    PyBuffer_Release(&b);
+    return ok;
+}
+
+// a whole C-contiguous buffer of 8-byte `format` items into `out`
+template <class T>
+bool read_all(PyObject *obj, const char *format, std::vector<T> &out, const char *what) {
+    Py_buffer b;
+    if (!kneeseat::get_buffer(obj, &b, format, 8, what, PyExc_ValueError)) return false;
+    const T *p = static_cast<const T *>(b.buf);
+    out.assign(p, p + b.len / 8);
+    PyBuffer_Release(&b);
+    return true;
+}
+
+void planner_dealloc(PyPlanner *self) {
+    delete self->planner;
+    Py_TYPE(self)->tp_free(reinterpret_cast<PyObject *>(self));
+}
+
+// Planner(push, e1, e2, free, centroid, arm, standoff, work, load_n, toward|None, fibres|None)
+// fibres: (seg_local (s, 3), seg_sign (s,), seg_fixed (s, 3), seg_fibre (s,) int64, slack
+// (f,), stiffness (f,), transition (f,))
+int planner_init(PyPlanner *self, PyObject *args, PyObject *) {
+    PyObject *po, *ao, *bo, *fo, *co, *to, *so;
+    double arm, standoff, load_n;
+    int work;
+    if (!PyArg_ParseTuple(args, "OOOOOddpdOO", &po, &ao, &bo, &fo, &co, &arm, &standoff, &work, &load_n, &to, &so))
+        return -1;
+    auto *p = new Planner();
+    bool ok = read_doubles(po, 3, p->push, "push") && read_doubles(ao, 3, p->e1, "e1") &&
+              read_doubles(bo, 3, p->e2, "e2") && read_doubles(fo, 3, p->free, "free") &&
+              read_doubles(co, 3, p->centroid, "centroid");
+    p->arm = arm;
+    p->standoff = standoff;
+    p->work = work;
+    p->load_n = load_n;
+    if (ok && !(arm > 0.0 && load_n > 0.0 && standoff >= 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "Planner: arm and load positive, standoff not negative");
+        ok = false;
+    }
+    if (ok && to != Py_None) {
+        p->toward = true;
+        ok = read_doubles(to, 3, p->point, "toward");
+    }
+    if (ok && so != Py_None) {
+        kneeseat::Fibres &t = p->fibres;
+        PyObject *parts[7];
+        ok = PyArg_ParseTuple(so, "OOOOOOO", &parts[0], &parts[1], &parts[2], &parts[3], &parts[4], &parts[5],
+                              &parts[6]) &&
+             read_all(parts[0], "d", t.local, "seg_local") && read_all(parts[1], "d", t.sign, "seg_sign") &&
+             read_all(parts[2], "d", t.fixed, "seg_fixed") && read_all(parts[3], "q", t.fibre, "seg_fibre") &&
+             read_all(parts[4], "d", t.slack, "slack") && read_all(parts[5], "d", t.stiffness, "stiffness") &&
+             read_all(parts[6], "d", t.transition, "transition");
+        const size_t s = t.segments(), f = t.fibres();
+        ok = ok && t.local.size() == 3 * s && t.fixed.size() == 3 * s && t.fibre.size() == s &&
+             t.stiffness.size() == f && t.transition.size() == f;
+        for (size_t i = 0; ok && i < s; ++i) ok = t.fibre[i] >= 0 && static_cast<size_t>(t.fibre[i]) < f;
+        if (!ok && !PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "Planner: fibres of segments (s, 3), (s,), (s, 3), fibres (s,) "
+                                              "indexing slack, stiffness and transition (f,)");
+        p->tissue = true;
+    }
+    if (!ok) {
+        delete p;
+        return -1;
+    }
+    const double x = p->push[0], y = p->push[1], z = p->push[2];
+    const double k[9] = {0.0, -z, y, z, 0.0, -x, -y, x, 0.0};
+    std::copy_n(k, 9, p->k);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            p->k2[3 * i + j] = k[3 * i] * k[j] + k[3 * i + 1] * k[3 + j] + k[3 * i + 2] * k[6 + j];
+    delete self->planner;
+    self->planner = p;
+    return 0;
+}
+
+// a held buffer of doubles: `what`, a multiple of `unit` doubles long (count set)
+bool take_rows(PyObject *obj, Py_buffer &b, Py_ssize_t unit, Py_ssize_t &count, const char *what) {
+    if (!kneeseat::get_buffer(obj, &b, "d", 8, what, PyExc_ValueError)) return false;
+    count = b.len / (8 * unit);
+    if (b.len == 8 * unit * count) return true;
+    PyErr_Format(PyExc_ValueError, "Planner: %s has the wrong shape", what);
+    PyBuffer_Release(&b);
+    return false;
+}
+
+// bytes of `size` from `data` (empty where there is nothing: a vector's data may be null)
+PyObject *bytes_of(const void *data, Py_ssize_t size) {
+    return PyBytes_FromStringAndSize(size ? static_cast<const char *>(data) : "", size);
+}
+
+bool ready(PyPlanner *self) {
+    if (self->planner) return true;
+    PyErr_SetString(PyExc_ValueError, "Planner: not initialised");
+    return false;
+}
+
+// laterals(base (4, 4), moves (m, 3)) -> poses (m, 4, 4) as bytes
+PyObject *planner_laterals(PyPlanner *self, PyObject *args) {
+    PyObject *bo, *mo;
+    if (!ready(self) || !PyArg_ParseTuple(args, "OO", &bo, &mo)) return nullptr;
+    double base[16];
+    Py_buffer mb;
+    Py_ssize_t m;
+    if (!read_doubles(bo, 16, base, "base") || !take_rows(mo, mb, 3, m, "moves")) return nullptr;
+    std::vector<double> out(16 * m);
+    const double *moves = static_cast<const double *>(mb.buf);
+    for (Py_ssize_t i = 0; i < m; ++i) self->planner->lateral(base, moves + 3 * i, &out[16 * i]);
+    PyBuffer_Release(&mb);
+    return bytes_of(out.data(), 128 * m);
+}
+
+// plan(base (4, 4), moves (m, 3), gaps (k,), slopes (k, 3), press, drive (3,), tries, gain,
+// want) -> (order (t,) int64, targets (t, 4, 4), needed (t,)) as bytes: the first `tries`
+// moves (all when negative) most promising first (press (s(x) - min gaps) + drive . x, the
+// model s(x) = min_k (gaps_k + slopes_k . x); ties in the order given), their poses and
+// the travel each must reach to gain (the lift that brings the objective to `want`, or
+// `gain` for the travel alone, plus the standoff)
+PyObject *planner_plan(PyPlanner *self, PyObject *args) {
+    PyObject *bo, *mo, *go, *so, *dobj;
+    double press, gain, want;
+    Py_ssize_t tries;
+    if (!ready(self) || !PyArg_ParseTuple(args, "OOOOdOndd", &bo, &mo, &go, &so, &press, &dobj, &tries, &gain, &want))
+        return nullptr;
+    Planner &p = *self->planner;
+    double base[16], drive[3];
+    if (!read_doubles(bo, 16, base, "base") || !read_doubles(dobj, 3, drive, "drive")) return nullptr;
+    Py_buffer b[3];
+    Py_ssize_t m, k, k3;
+    if (!take_rows(mo, b[0], 3, m, "moves")) return nullptr;
+    if (!take_rows(go, b[1], 1, k, "gaps")) { PyBuffer_Release(&b[0]); return nullptr; }
+    bool held = take_rows(so, b[2], 3, k3, "slopes");
+    if (!held || k3 != k) {
+        if (held) {
+            PyBuffer_Release(&b[2]);
+            PyErr_SetString(PyExc_ValueError, "Planner: slopes (k, 3) for gaps (k,)");
+        }
+        PyBuffer_Release(&b[0]);
+        PyBuffer_Release(&b[1]);
+        return nullptr;
+    }
+    const double *moves = static_cast<const double *>(b[0].buf), *gaps = static_cast<const double *>(b[1].buf),
+                 *slopes = static_cast<const double *>(b[2].buf);
+    std::vector<double> promise(m);
+    double floor = kInf;
+    for (Py_ssize_t j = 0; j < k; ++j) floor = std::min(floor, gaps[j]);
+    for (Py_ssize_t i = 0; i < m; ++i) {
+        const double *x = moves + 3 * i;
+        double v = x[0] * drive[0] + x[1] * drive[1] + x[2] * drive[2];
+        if (k > 0) {
+            double travel = kInf;
+            for (Py_ssize_t j = 0; j < k; ++j) {
+                const double *a = slopes + 3 * j;
+                travel = std::min(travel, gaps[j] + (x[0] * a[0] + x[1] * a[1] + x[2] * a[2]));
+            }
+            v += press * (travel - floor);
+        }
+        promise[i] = v;
+    }
+    std::vector<int64_t> order(m);
+    std::iota(order.begin(), order.end(), 0);
+    std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t c) { return promise[a] > promise[c]; });
+    const Py_ssize_t t = tries < 0 ? m : std::min(tries, m);
+    order.resize(t);
+    std::vector<double> targets(16 * t), needed(t);
+    for (Py_ssize_t i = 0; i < t; ++i) {
+        double *target = &targets[16 * i];
+        p.lateral(base, moves + 3 * order[i], target);
+        needed[i] = (p.work ? p.lift(target, want) : gain) + p.standoff;
+    }
+    for (auto &buf : b) PyBuffer_Release(&buf);
+    return Py_BuildValue("(NNN)", bytes_of(order.data(), 8 * t), bytes_of(targets.data(), 128 * t),
+                         bytes_of(needed.data(), 8 * t));
+}
+
+// pushes(poses (m, 4, 4)) -> (energies (m,), dE/dt (m, 3)) as bytes: the ligaments weighed
+// as the lifts weigh them (zero without ligaments)
+PyObject *planner_pushes(PyPlanner *self, PyObject *args) {
+    PyObject *po;
+    if (!ready(self) || !PyArg_ParseTuple(args, "O", &po)) return nullptr;
+    Py_buffer b;
+    Py_ssize_t m;
+    if (!take_rows(po, b, 16, m, "poses")) return nullptr;
+    std::vector<double> energies(m, 0.0), forces(3 * m, 0.0);
+    const double *poses = static_cast<const double *>(b.buf);
+    if (self->planner->tissue)
+        for (Py_ssize_t i = 0; i < m; ++i) energies[i] = self->planner->fibres.push(poses + 16 * i, &forces[3 * i]);
+    PyBuffer_Release(&b);
+    return Py_BuildValue("(NN)", bytes_of(energies.data(), 8 * m), bytes_of(forces.data(), 24 * m));
+}
+
+PyMethodDef planner_methods[] = {
+    {"laterals", reinterpret_cast<PyCFunction>(planner_laterals), METH_VARARGS,
+     "laterals(base, moves) -> poses: base moved by each lateral move"},
+    {"plan", reinterpret_cast<PyCFunction>(planner_plan), METH_VARARGS,
+     "plan(base, moves, gaps, slopes, press, drive, tries, gain, want) -> (order, targets, needed)"},
+    {"pushes", reinterpret_cast<PyCFunction>(planner_pushes), METH_VARARGS,
+     "pushes(poses) -> (energies, forces): the ligaments at each pose"},
+    {nullptr, nullptr, 0, nullptr}};
+
+PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_moves", "The moves a climb tries, planned at once.", -1,
+                          nullptr};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__moves() {
+    PlannerType.tp_name = "kneeseat_core.settle._moves.Planner";
+    PlannerType.tp_doc = "Planner(push, e1, e2, free, centroid, arm, standoff, work, load_n, toward, fibres)";
+    PlannerType.tp_basicsize = sizeof(PyPlanner);
+    PlannerType.tp_flags = Py_TPFLAGS_DEFAULT;
+    PlannerType.tp_new = PyType_GenericNew;
+    PlannerType.tp_init = reinterpret_cast<initproc>(planner_init);
+    PlannerType.tp_dealloc = reinterpret_cast<destructor>(planner_dealloc);
+    PlannerType.tp_methods = planner_methods;
+    if (PyType_Ready(&PlannerType) < 0) return nullptr;
+    PyObject *m = PyModule_Create(&module_def);
+    if (!m) return nullptr;
+    Py_INCREF(&PlannerType);
+    if (PyModule_AddObject(m, "Planner", reinterpret_cast<PyObject *>(&PlannerType)) < 0) {
+        Py_DECREF(m);
+        return nullptr;
+    }
+    return m;
+}

@@ -1,0 +1,82 @@
+"""The moves a climb tries, planned at once (compiled, `_moves.cpp`).
+
+At every step the climb (`kneeseat_core.settle.climb`) considers up to 27 lateral moves:
+it orders them by what the near-active features promise (`kneeseat_core.settle.model`),
+turns the most promising into poses (a slide across the push Δ and a spin about the axis
+through the body's centroid parallel to it) and asks how far along Δ each must then reach
+to gain: one Newton step of the lift, from the objective's terms
+(`Objective.lift_terms`: the load's line and the ligaments, weighed at every pose). On
+arrays that small numpy's calls cost several times the arithmetic, so the whole plan is
+one compiled call.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from kneeseat_core.ligaments import Tissue
+from kneeseat_core.typed import Floats, Ints, Pose
+from . import _moves
+from .model import Model
+from .objective import Objective
+from .search import Search
+
+__all__ = ['Planner']
+
+
+def _floats(a: Floats) -> Floats:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _fibres(tissue: Tissue | None) -> tuple[Floats, ...] | None:
+    """The tissue's segments and fibres as the compiled planner reads them."""
+    if tissue is None:
+        return None
+    return (_floats(tissue.seg_local), _floats(tissue.seg_sign), _floats(tissue.seg_fixed),
+            np.ascontiguousarray(tissue.seg_fibre, dtype=np.int64), _floats(tissue.slack_m),
+            _floats(tissue.stiffness_n), _floats(tissue.transition))
+
+
+class Planner:
+    """One climb's planner: the push frame, the arm of a spin, the standoff and the
+    objective's terms, fixed for the climb."""
+
+    def __init__(self, search: Search, objective: Objective, arm: float,
+                 standoff: float) -> None:
+        terms = objective.lift_terms()
+        toward = None if terms.toward is None else _floats(terms.toward)
+        self._native = _moves.Planner(
+            _floats(search.push), _floats(search.e1), _floats(search.e2), _floats(search.free),
+            _floats(search.pair.moving.centroid), float(arm), float(standoff), terms.work,
+            float(terms.load_n), toward, _fibres(terms.tissue))
+
+    def laterals(self, base: Pose, moves: Floats) -> Floats:
+        """`base` (4, 4) slid by move[0] e1 + move[1] e2 and spun by move[2] / arm (rad)
+        about the axis through its centroid parallel to Δ, for each of `moves` (m, 3): (m,
+        4, 4). A spin about any other centre is this plus a slide; a locked slide is not
+        made."""
+        raw = self._native.laterals(_floats(base), _floats(moves))
+        return np.frombuffer(raw, dtype=np.float64).reshape(-1, 4, 4)
+
+    def plan(self, base: Pose, moves: Floats, near: Model, press: float, drive: Floats,
+             tries: int | None, gain: float, want: float) -> tuple[Ints, Floats, Floats]:
+        """The moves `moves` (m, 3) from `base` most promising first under the model
+        `near` (press (s(x) - its least gap) + drive . x; ties in the order given), only the
+        `tries` first when given: their indices (t,), their poses (t, 4, 4) and the travel
+        along Δ each must reach to gain `gain` (one Newton step of the lift bringing the
+        objective to `want`, its value at `base` plus `gain`; inf where the body is not
+        pressed on), the standoff included."""
+        order, targets, needed = self._native.plan(
+            _floats(base), _floats(moves), _floats(near.gaps), _floats(near.slopes),
+            float(press), _floats(drive), -1 if tries is None else int(tries), float(gain),
+            float(want))
+        return (np.frombuffer(order, dtype=np.int64),
+                np.frombuffer(targets, dtype=np.float64).reshape(-1, 4, 4),
+                np.frombuffer(needed, dtype=np.float64))
+
+    def pushes(self, poses: Floats) -> tuple[Floats, Floats]:
+        """The ligaments' energies (m,) and dE/dt (m, 3) at each of `poses` (m, 4, 4) as the
+        lifts weigh them (`Tissue.rates`' energy and force, to rounding; zero without
+        ligaments)."""
+        energies, forces = self._native.pushes(_floats(poses))
+        return (np.frombuffer(energies, dtype=np.float64),
+                np.frombuffer(forces, dtype=np.float64).reshape(-1, 3))

@@ -1,0 +1,161 @@
+"""The compiled move planner (`kneeseat_core.settle.planner`) against numpy written here: the
+order the model promises, the poses of the moves and the lift each needs, with the
+ligaments weighed as `Tissue.rates` weighs them."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import settle_cases as sc
+from kneeseat_core.geometry import pose_from, rotation_about
+from kneeseat_core.ligaments import parse_ligaments, Tissue
+from kneeseat_core.meshes import CollisionPair
+from kneeseat_core.settle import _moves, SettleParams
+from kneeseat_core.settle.model import Model
+from kneeseat_core.settle.objective import Travel, Work
+from kneeseat_core.settle.planner import Planner
+from kneeseat_core.settle.search import Search
+
+BODIES = ['femur', 'tibia', 'patella']
+
+
+def fibres(rng: np.random.Generator, paths: bool) -> Tissue:
+    """40 one-segment fibres from femur to tibia, and 9 paths of two segments when asked."""
+    def point() -> list[float]:
+        return list(rng.normal(0, 0.02, 3))
+    items = [{'name': f'f{i}', 'slack_length_m': 0.01 + 0.02 * rng.random(),
+              'linear_stiffness_n': 1000.0,
+              'points': [{'body': 'femur', 'position': point()},
+                         {'body': 'tibia', 'position': point()}]} for i in range(40)]
+    if paths:
+        items += [{'name': f'p{i}', 'slack_length_m': 0.05, 'linear_stiffness_n': 1000.0,
+                   'points': [{'body': b, 'position': point()}
+                              for b in ('femur', 'tibia', 'tibia')]} for i in range(9)]
+    tissue = parse_ligaments(items, 'test', BODIES).tissue('tibia', {'femur': np.eye(4)})
+    assert tissue is not None and tissue.single == (not paths)
+    return tissue
+
+
+def random_poses(rng: np.random.Generator, count: int) -> np.ndarray:
+    return np.array([pose_from(rotation_about(rng.normal(size=3) / 3.0, rng.normal(0, 0.2)),
+                               rng.normal(0, 0.005, 3)) for _ in range(count)])
+
+
+def search_of(load_toward: tuple[float, float, float] | None = None) -> Search:
+    var = sc.variant('key_pocket', 'rotated')
+    params = SettleParams(push=tuple(float(v) for v in var.push), load_n=250.0,
+                          load_toward=load_toward)
+    return Search(CollisionPair(var.fixed, var.moving), var.start, params, var.start)
+
+
+@pytest.mark.parametrize('paths', [False, True])
+def test_the_ligaments_weigh_each_pose_as_its_own_rates(paths: bool) -> None:
+    rng = np.random.default_rng(20261202)
+    tissue = fibres(rng, paths)
+    search = search_of()
+    planner = Planner(search, Work(search, tissue, 250.0, None, 0.02), 0.02, 0.0)
+    poses = random_poses(rng, 64)
+    for size in (0, 1, 4, 43):
+        energies, forces = planner.pushes(poses[:size])
+        assert energies.shape == (size,) and forces.shape == (size, 3)
+        for pose, energy, force in zip(poses[:size], energies, forces):
+            alone_energy, alone_force, _ = tissue.rates(pose)
+            assert alone_energy > 0.0
+            assert abs(energy - alone_energy) <= 1e-12 * alone_energy
+            assert np.max(np.abs(force - alone_force)) <= 1e-12 * np.max(np.abs(alone_force))
+
+
+def numpy_lifts(search: Search, work: Work, targets: np.ndarray, want: float) -> np.ndarray:
+    """The lift each target needs, one Newton step from none, written out with numpy."""
+    out = []
+    for pose in targets:
+        energy, force, _ = work.tissue.rates(pose) if work.tissue else (0.0, np.zeros(3), 0)
+        centre = search.centre(pose)
+        if work.toward is None:
+            value, line = float(centre @ search.push), search.push
+        else:
+            d = work.toward - centre
+            value, line = -float(np.linalg.norm(d)), d / np.linalg.norm(d)
+        slope = float(line @ search.push) - float(force @ search.push) / work.load_n
+        out.append((want - (value - energy / work.load_n)) / slope if slope > 0 else math.inf)
+    return np.array(out)
+
+
+@pytest.mark.parametrize('toward', [None, (0.0, 0.3, 0.05)])
+@pytest.mark.parametrize('tries', [None, 5])
+def test_a_plan_orders_the_moves_by_their_promise_and_lifts_each_as_numpy_does(
+        toward: tuple[float, float, float] | None, tries: int | None) -> None:
+    rng = np.random.default_rng(20261206)
+    search = search_of(toward)
+    arm, standoff, gain = 0.02, 2e-6, 1e-6
+    work = Work(search, fibres(rng, True), 250.0,
+                None if toward is None else np.asarray(toward), arm)
+    planner = Planner(search, work, arm, standoff)
+    base = search.start.copy()
+    moves = rng.normal(0.0, 2e-4, (27, 3))
+    moves[5] = moves[9]                    # a tie: kept in the order given
+    near = Model(rng.uniform(0.0, 1e-5, 6), rng.normal(0.0, 0.5, (6, 3)),
+                 np.zeros((6, 2), dtype=np.int64))
+    press, drive = 0.8, rng.normal(0.0, 0.3, 3)
+    want = float(work.value(base)) + gain
+    order, targets, needed = planner.plan(base, moves, near, press, drive, tries, gain, want)
+    promise = moves @ drive + press * (np.min(near.gaps + moves @ near.slopes.T, axis=1)
+                                       - np.min(near.gaps))
+    expected = np.argsort(-promise, kind='stable')[:tries]
+    assert np.array_equal(order, expected)
+    assert np.allclose(targets, planner.laterals(base, moves[order]), rtol=0, atol=1e-15)
+    lifts = numpy_lifts(search, work, targets, want) + standoff
+    finite = np.isfinite(lifts)
+    assert finite.any()
+    assert np.array_equal(finite, np.isfinite(needed))
+    assert np.allclose(needed[finite], lifts[finite], rtol=1e-9, atol=1e-12)
+    # the travel alone: every move must reach the gain itself, in the order it promises
+    travel = Planner(search, Travel(search), arm, standoff)
+    order, _, needed = travel.plan(base, moves, near, 1.0, np.zeros(3), tries, gain, want)
+    plain = np.min(near.gaps + moves @ near.slopes.T, axis=1)
+    assert np.array_equal(order, np.argsort(-plain, kind='stable')[:tries])
+    assert np.all(needed == gain + standoff)
+
+
+def test_without_features_the_drive_alone_orders_the_moves() -> None:
+    search = search_of()
+    planner = Planner(search, Travel(search), 0.02, 0.0)
+    moves = np.array([[1e-4, 0.0, 0.0], [-1e-4, 0.0, 0.0], [0.0, 0.0, 2e-4]])
+    empty = Model(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
+    order, targets, _ = planner.plan(search.start, moves, empty, 1.0,
+                                     np.array([-1.0, 0.0, 0.5]), None, 1e-6, 0.0)
+    assert order.tolist() == [1, 2, 0] and targets.shape == (3, 4, 4)
+
+
+def test_the_compiled_planner_refuses_bad_arrays_without_crashing() -> None:
+    """Wrong shapes, dtypes or a fibre index out of range are a Python error, never a crash."""
+    e = np.eye(3)
+    local, sign, fixed = np.zeros((2, 3)), np.ones(2), np.zeros((2, 3))
+    laws = (np.ones(2), np.ones(2), np.ones(2))
+
+    def planner(fibre_of: object, local: object = local) -> _moves.Planner:
+        return _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 1.0, 0.0, True, 1.0,
+                              None, (local, sign, fixed, fibre_of, *laws))
+    good = planner(np.array([0, 1]))
+    assert len(good.pushes(np.eye(4)[None])[0]) == 8
+    with pytest.raises(ValueError):
+        planner(np.array([0, 2]))
+    with pytest.raises(ValueError):
+        planner(np.array([0, 1]), local[:1])
+    with pytest.raises(ValueError):
+        planner(np.array([0.0, 1.0]))
+    with pytest.raises(ValueError):
+        good.pushes(np.eye(3))
+    with pytest.raises(ValueError):
+        good.laterals(np.eye(4), np.zeros((2, 2)))
+    with pytest.raises(ValueError):
+        good.plan(np.eye(4), np.zeros((2, 3)), np.zeros(2), np.zeros((3, 3)), 1.0, np.zeros(3),
+                  -1, 0.0, 0.0)
+    with pytest.raises(TypeError):
+        good.pushes('x')
+    with pytest.raises(ValueError):
+        _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 0.0, 0.0, False, 1.0, None,
+                       None)
+
