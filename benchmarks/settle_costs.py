@@ -7,8 +7,8 @@ minus). Builds a slice of each knee's table in this process (`kneeseat build --w
 uses: the exact travel's searches (`_sweep.contacts`, `_sweep.travels`), the witnesses
 (`_sweep.first_unrefuted`), python-fcl (`fcl.collide`), the moves' plans (`Planner.plan`:
 their order, poses and lifts with the ligaments weighed, its thin wrapper included) and the
-linear program (`_simplex.maximise`). What is left of the settles' time is Python and
-numpy around them. Prints, per knee, milliseconds a settle for each part, its calls a
+linear program (`_simplex.best_move`, built and solved). What is left of the settles' time
+is Python and numpy around them. Prints, per knee, milliseconds a settle for each part, its calls a
 settle and its share. Timing a call costs about a microsecond, so the Python share is
 overstated by about that much per call (the calls a settle are printed).
 """
@@ -38,7 +38,7 @@ PARTS: dict[str, list[tuple[Any, str]]] = {
     'witnesses': [(_sweep, 'first_unrefuted')],
     'python-fcl': [(fcl, 'collide')],
     'move plans': [(Planner, 'plan')],
-    'linear program': [(_simplex, 'maximise')],
+    'linear program': [(_simplex, 'best_move')],
 }
 
 

@@ -1,6 +1,7 @@
-"""The compiled move planner (`kneeseat_core.settle.planner`) against numpy written here: the
+"""The compiled move planner (`kneeseat_core.settle.planner`) against numpy written here (the
 order the model promises, the poses of the moves and the lift each needs, with the
-ligaments weighed as `Tissue.rates` weighs them."""
+ligaments weighed as `Tissue.rates` weighs them), and the compiled best move against
+scipy's linear programming."""
 from __future__ import annotations
 
 import math
@@ -12,8 +13,8 @@ import settle_cases as sc
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.ligaments import parse_ligaments, Tissue
 from kneeseat_core.meshes import CollisionPair
-from kneeseat_core.settle import _moves, SettleParams
-from kneeseat_core.settle.model import Model
+from kneeseat_core.settle import _moves, _simplex, SettleParams
+from kneeseat_core.settle.model import best_move, Model
 from kneeseat_core.settle.objective import Travel, Work
 from kneeseat_core.settle.planner import Planner
 from kneeseat_core.settle.search import Search
@@ -159,3 +160,43 @@ def test_the_compiled_planner_refuses_bad_arrays_without_crashing() -> None:
         _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 0.0, 0.0, False, 1.0, None,
                        None)
 
+
+@pytest.mark.parametrize('seed', range(6))
+def test_the_best_move_is_the_linear_program_s_optimum_as_scipy_finds_it(seed: int) -> None:
+    """The compiled program (`best_move`) against scipy's linprog on the same model: the
+    objective it reaches is the optimum to rounding, inside the box, and what it promises
+    is measured on the model."""
+    from scipy.optimize import linprog
+    rng = np.random.default_rng(seed)
+    k = int(rng.integers(1, 12))
+    near = Model(rng.uniform(0.0, 2e-5, k), rng.normal(0.0, 0.6, (k, 3)),
+                 np.zeros((k, 2), dtype=np.int64))
+    press, drive = float(rng.uniform(0.2, 1.5)), rng.normal(0.0, 0.2, 3)
+    radius = rng.uniform(1e-5, 1e-4, 3) * (rng.random(3) > 0.2)
+    x, promised = best_move(near, press, drive, radius)
+    assert np.all(np.abs(x) <= radius)
+    modelled = float(np.min(near.gaps + near.slopes @ x))
+    assert promised == pytest.approx(press * (modelled - np.min(near.gaps)) + drive @ x,
+                                     abs=1e-15)
+    # over (x, s): maximise press s + drive . x with s <= g_k + a_k . x, |x_i| <= r_i
+    cost = -np.concatenate([drive, [press]])
+    a = np.hstack([-near.slopes, np.ones((k, 1))])
+    bounds = [(-r, r) for r in radius] + [(None, None)]
+    ref = linprog(cost, A_ub=a, b_ub=near.gaps, bounds=bounds, method='highs')
+    assert ref.status == 0
+    best = -ref.fun - press * float(np.min(near.gaps))
+    # each unit of a move's length costs a millionth of the rates: at most that is given up
+    allowance = 1e-6 * max(press, float(np.max(np.abs(drive)))) * float(np.sum(radius)) * 2
+    assert promised >= best - allowance - 1e-15
+    assert promised <= best + 1e-15
+
+
+def test_the_best_move_refuses_a_bad_model_without_crashing() -> None:
+    with pytest.raises(ValueError):
+        _simplex.best_move(np.zeros(0), np.zeros((0, 3)), 1.0, np.zeros(3), np.ones(3))
+    with pytest.raises(ValueError):
+        _simplex.best_move(np.zeros(2), np.zeros((3, 3)), 1.0, np.zeros(3), np.ones(3))
+    with pytest.raises(ValueError):
+        _simplex.best_move(np.array([np.nan]), np.zeros((1, 3)), 1.0, np.zeros(3), np.ones(3))
+    with pytest.raises(ValueError):
+        _simplex.best_move(np.zeros(1), np.zeros((1, 3)), 1.0, np.zeros(3), -np.ones(3))

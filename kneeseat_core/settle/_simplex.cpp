@@ -1,15 +1,14 @@
 // A small linear program, solved by the simplex method on the condensed (Tucker) tableau:
 // maximise cost . v subject to a v <= b, v >= 0, with b >= 0 (the origin is feasible).
-// kneeseat_core/settle/model.py builds the program (the move that climbs most on the travel's
-// first-order model); the climb asks it at every fine step, where a general solver's setup
-// alone costs more than the step. Bland's rule: no cycling on the degenerate vertices that
-// many equal gaps make.
+// `best_move` builds the program kneeseat_core/settle/model.py asks (the move that climbs
+// most on the travel's first-order model) and solves it: the climb asks it at every fine
+// step, where a general solver's setup alone costs more than the step. Bland's rule: no
+// cycling on the degenerate vertices that many equal gaps make.
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
 #include <algorithm>
 #include <cmath>
-#include <cstring>
 #include <vector>
 
 #include "../_buffers.h"
@@ -62,49 +61,104 @@ void solve(std::vector<double> &t, int m, int n, std::vector<double> &v) {
         if (row_var[i] < n) v[row_var[i]] = t[i * w + n];
 }
 
+// A slope below a nanometre per metre is rounding (a pivot on it would blow the tableau up).
+constexpr double kFlatSlope = 1e-9;
+// The cost of a move per unit of its length, relative to the objective's own rates.
+constexpr double kStill = 1e-6;
+constexpr double kEps = 1e-12;
+
 bool get_doubles(PyObject *obj, Py_buffer *view, const char *what) {
-    return kneeseat::get_buffer(obj, view, "d", 8, what);
+    return kneeseat::get_buffer(obj, view, "d", 8, what, PyExc_ValueError);
 }
 
-// maximise(a (m, n), b (m,), cost (n,)) -> v (n,) as bytes
-PyObject *maximise(PyObject *, PyObject *args) {
-    PyObject *ao, *bo, *co;
-    if (!PyArg_ParseTuple(args, "OOO", &ao, &bo, &co)) return nullptr;
-    Py_buffer a, b, c;
-    if (!get_doubles(ao, &a, "a")) return nullptr;
-    if (!get_doubles(bo, &b, "b")) { PyBuffer_Release(&a); return nullptr; }
-    if (!get_doubles(co, &c, "cost")) { PyBuffer_Release(&a); PyBuffer_Release(&b); return nullptr; }
-    Py_ssize_t m = b.len / 8, n = c.len / 8;
-    const double *pa = static_cast<const double *>(a.buf), *pb = static_cast<const double *>(b.buf),
-                 *pc = static_cast<const double *>(c.buf);
-    bool ok = n > 0 && a.len == 8 * m * n && m < 1000000 && n < 64;
-    for (Py_ssize_t i = 0; ok && i < m; ++i) ok = pb[i] >= 0.0 && std::isfinite(pb[i]);
-    for (Py_ssize_t i = 0; ok && i < m * n; ++i) ok = std::isfinite(pa[i]);
-    for (Py_ssize_t i = 0; ok && i < n; ++i) ok = std::isfinite(pc[i]);
+// best_move(gaps (k,), slopes (k, 3), press, drive (3,), radius (3,)) -> (x (3,) as bytes,
+// promised): the move x with |x_i| <= radius_i that maximises press s(x) + drive . x under
+// the model s(x) = min_k (gaps_k + slopes_k . x), and what that promises over no move
+// (measured on the model itself: a rounding in the tableau can promise what the box does
+// not hold). Columns of the program: x+ (3), x- (3), s - lowest (1), all >= 0, the origin
+// (no move) feasible; a move that gains nothing is not made (each unit of its length
+// costs a millionth of the rates), so a direction the model holds level (a slide along a
+// groove) stays at no move instead of running to the box's corner.
+PyObject *best_move(PyObject *, PyObject *args) {
+    PyObject *go, *so, *dobj, *ro;
+    double press;
+    if (!PyArg_ParseTuple(args, "OOdOO", &go, &so, &press, &dobj, &ro)) return nullptr;
+    Py_buffer b[4];
+    int held = 0;
+    bool ok = get_doubles(go, &b[0], "gaps") && ++held && get_doubles(so, &b[1], "slopes") && ++held &&
+              get_doubles(dobj, &b[2], "drive") && ++held && get_doubles(ro, &b[3], "radius") && ++held;
+    const Py_ssize_t k = ok ? b[0].len / 8 : 0;
+    ok = ok && k > 0 && b[1].len == 24 * k && b[2].len == 24 && b[3].len == 24 && std::isfinite(press);
+    const double *gaps = ok ? static_cast<const double *>(b[0].buf) : nullptr;
+    const double *drive = ok ? static_cast<const double *>(b[2].buf) : nullptr;
+    const double *radius = ok ? static_cast<const double *>(b[3].buf) : nullptr;
+    std::vector<double> slopes(ok ? 3 * k : 0);
+    for (Py_ssize_t i = 0; ok && i < 3 * k; ++i) {
+        double a = static_cast<const double *>(b[1].buf)[i];
+        ok = std::isfinite(a);
+        slopes[i] = std::fabs(a) < kFlatSlope ? 0.0 : a;
+    }
+    for (Py_ssize_t i = 0; ok && i < k; ++i) ok = std::isfinite(gaps[i]);
+    for (int i = 0; ok && i < 3; ++i) ok = std::isfinite(drive[i]) && radius[i] >= 0.0 && std::isfinite(radius[i]);
     if (!ok) {
-        PyBuffer_Release(&a); PyBuffer_Release(&b); PyBuffer_Release(&c);
-        PyErr_SetString(PyExc_ValueError, "maximise: finite a (m, n), b (m,) >= 0, cost (n,)");
+        for (int i = 0; i < held; ++i) PyBuffer_Release(&b[i]);
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "best_move: finite gaps (k,) with k > 0, slopes (k, 3), press, "
+                                              "drive (3,) and radius (3,) >= 0");
         return nullptr;
     }
-    const int w = static_cast<int>(n) + 1;
-    std::vector<double> t((m + 1) * w, 0.0), v;
-    for (Py_ssize_t i = 0; i < m; ++i) {
-        std::memcpy(&t[i * w], pa + i * n, n * sizeof(double));
-        t[i * w + n] = pb[i];
+    double floor = INFINITY, lowest = INFINITY;
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        const double *a = &slopes[3 * j];
+        floor = std::min(floor, gaps[j]);
+        lowest = std::min(lowest, gaps[j] - (std::fabs(a[0]) * radius[0] + std::fabs(a[1]) * radius[1] +
+                                             std::fabs(a[2]) * radius[2]));
     }
-    for (Py_ssize_t j = 0; j < n; ++j) t[m * w + j] = -pc[j];
-    PyBuffer_Release(&a); PyBuffer_Release(&b); PyBuffer_Release(&c);
-    solve(t, static_cast<int>(m), static_cast<int>(n), v);
-    return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(v.data()), n * 8);
+    lowest -= kEps;                    // the least travel any move in the box can model
+    const int m = static_cast<int>(k) + 6, n = 7, w = n + 1;
+    std::vector<double> t((m + 1) * w, 0.0), v;
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        double *row = &t[j * w];
+        for (int i = 0; i < 3; ++i) {
+            row[i] = -slopes[3 * j + i];
+            row[3 + i] = slopes[3 * j + i];
+        }
+        row[6] = 1.0;
+        row[n] = gaps[j] - lowest;
+    }
+    for (int i = 0; i < 3; ++i) {
+        t[(k + i) * w + i] = t[(k + 3 + i) * w + 3 + i] = 1.0;
+        t[(k + i) * w + n] = t[(k + 3 + i) * w + n] = radius[i];
+    }
+    double still = std::fabs(press);
+    for (int i = 0; i < 3; ++i) still = std::max(still, std::fabs(drive[i]));
+    still *= kStill;
+    double *objective = &t[m * w];      // the last row holds -cost
+    for (int i = 0; i < 3; ++i) {
+        objective[i] = -(drive[i] - still);
+        objective[3 + i] = -(-drive[i] - still);
+    }
+    objective[6] = -press;
+    solve(t, m, n, v);
+    double x[3];
+    for (int i = 0; i < 3; ++i) x[i] = std::min(std::max(v[i] - v[3 + i], -radius[i]), radius[i]);
+    double travel = INFINITY;
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        const double *a = &slopes[3 * j];
+        travel = std::min(travel, gaps[j] + (a[0] * x[0] + a[1] * x[1] + a[2] * x[2]));
+    }
+    const double promised = press * (travel - floor) + (drive[0] * x[0] + drive[1] * x[1] + drive[2] * x[2]);
+    for (int i = 0; i < held; ++i) PyBuffer_Release(&b[i]);
+    return Py_BuildValue("(Nd)", PyBytes_FromStringAndSize(reinterpret_cast<const char *>(x), 24), promised);
 }
 
 PyMethodDef methods[] = {
-    {"maximise", maximise, METH_VARARGS,
-     "maximise(a, b, cost) -> v: cost . v largest with a v <= b, v >= 0 (b >= 0)"},
+    {"best_move", best_move, METH_VARARGS,
+     "best_move(gaps, slopes, press, drive, radius) -> (x, promised): the move the model says climbs most"},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_simplex",
-                          "A small linear program by the simplex method.", -1, methods};
+                          "The move that climbs most on a first-order model: a small linear program by the simplex method.", -1, methods};
 
 }  // namespace
 

@@ -16,7 +16,8 @@ that keeps every contact, a linear program in (x, s)) and to name the pairs of t
 likely to stop a move (its witnesses, `SweepPair.first_unrefuted`), never to decide a gain
 (`kneeseat_core.settle.climb`). The linear program is solved by a small simplex written by
 hand (`_simplex.cpp`, compiled with the package): the climb asks it at every fine step, and
-a general solver's setup alone costs more than that (scipy's linprog about 3 ms).
+a general solver's setup alone costs more than that (scipy's linprog about 3 ms), and the
+program is built there too (numpy's calls on its few small arrays cost more than solving it).
 """
 from __future__ import annotations
 
@@ -34,11 +35,6 @@ __all__ = ['Model', 'STEEPEST', 'best_move', 'feature_slopes']
 # Δ, a triangle seen edge on - their slope holds for a sliver of a move. A lateral move of
 # length l goes at most this deep into what the model keeps.
 STEEPEST = 3.0
-_EPS = 1e-12
-# the cost of a move per unit of its length, relative to the objective's own rates
-_STILL = 1e-6
-# a slope below a nanometre per metre is rounding
-_FLAT_SLOPE = 1e-9
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -84,30 +80,14 @@ def feature_slopes(normals: Floats, points: Floats, push: Floats, e1: Floats, e2
 
 def best_move(model: Model, press: float, drive: Floats, radius: Floats) -> tuple[Floats, float]:
     """The move x (3,) with |x_i| <= radius_i that maximises press s(x) + drive . x under
-    the model, and the gain that promises over no move."""
-    # a slope below a nanometre per metre is rounding (a pivot on it would blow the tableau
-    # up): none
-    gaps = model.gaps
-    slopes = np.where(np.abs(model.slopes) < _FLAT_SLOPE, 0.0, model.slopes)
-    k = len(gaps)
-    floor = float(np.min(gaps))
-    # the least travel any move in the box can model: s - lowest >= 0 costs nothing
-    lowest = float(np.min(gaps - np.abs(slopes) @ radius)) - _EPS
-    # columns: x+ (3), x- (3), s - lowest (1); all >= 0, the origin (no move) feasible
-    a = np.zeros((k + 6, 7))
-    b = np.zeros(k + 6)
-    a[:k, :3], a[:k, 3:6], a[:k, 6] = -slopes, slopes, 1.0
-    b[:k] = gaps - lowest
-    for i in range(3):
-        a[k + i, i] = a[k + 3 + i, 3 + i] = 1.0
-        b[k + i] = b[k + 3 + i] = radius[i]
-    # a move that gains nothing is not made: a direction the model holds level (a slide
-    # along a groove) stays at no move instead of running to the box's corner
-    still = _STILL * max(abs(press), float(np.max(np.abs(drive))))
-    cost = np.concatenate([drive - still, -drive - still, [press]])
-    v = np.frombuffer(_simplex.maximise(a, b, cost), dtype=np.float64)
-    x = np.clip(v[:3] - v[3:6], -radius, radius)
-    # what the model promises there, measured on the model itself (a rounding in the
-    # tableau can promise what the box does not hold)
-    travel = float(np.min(gaps + slopes @ x))
-    return x, press * (travel - floor) + float(drive @ x)
+    the model (at least one feature), and the gain that promises over no move (measured on
+    the model itself). Slopes below a nanometre per metre count as none (rounding: a pivot
+    on one would blow the tableau up), and each unit of a move's length costs a millionth
+    of the objective's rates, so a direction the model holds level (a slide along a groove)
+    stays at no move instead of running to the box's corner (`_simplex.cpp`)."""
+    x, promised = _simplex.best_move(
+        np.ascontiguousarray(model.gaps, dtype=np.float64),
+        np.ascontiguousarray(model.slopes, dtype=np.float64), float(press),
+        np.ascontiguousarray(drive, dtype=np.float64),
+        np.ascontiguousarray(radius, dtype=np.float64))
+    return np.frombuffer(x, dtype=np.float64), promised
