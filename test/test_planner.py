@@ -68,19 +68,26 @@ def test_the_ligaments_weigh_each_pose_as_its_own_rates(paths: bool) -> None:
             assert np.max(np.abs(force - alone_force)) <= 1e-12 * np.max(np.abs(alone_force))
 
 
+def numpy_worth(search: Search, work: Work, pose: np.ndarray) -> tuple[float, float]:
+    """What `pose` is worth (the load's work less the energy, per unit load) and the rate of
+    that under a lift along the push, written out with numpy."""
+    energy, force, _ = work.tissue.rates(pose) if work.tissue else (0.0, np.zeros(3), 0)
+    centre = search.centre(pose)
+    if work.toward is None:
+        value, line = float(centre @ search.push), search.push
+    else:
+        d = work.toward - centre
+        value, line = -float(np.linalg.norm(d)), d / np.linalg.norm(d)
+    slope = float(line @ search.push) - float(force @ search.push) / work.load_n
+    return value - energy / work.load_n, slope
+
+
 def numpy_lifts(search: Search, work: Work, targets: np.ndarray, want: float) -> np.ndarray:
-    """The lift each target needs, one Newton step from none, written out with numpy."""
+    """The lift each target needs, one Newton step from none."""
     out = []
     for pose in targets:
-        energy, force, _ = work.tissue.rates(pose) if work.tissue else (0.0, np.zeros(3), 0)
-        centre = search.centre(pose)
-        if work.toward is None:
-            value, line = float(centre @ search.push), search.push
-        else:
-            d = work.toward - centre
-            value, line = -float(np.linalg.norm(d)), d / np.linalg.norm(d)
-        slope = float(line @ search.push) - float(force @ search.push) / work.load_n
-        out.append((want - (value - energy / work.load_n)) / slope if slope > 0 else math.inf)
+        value, slope = numpy_worth(search, work, pose)
+        out.append((want - value) / slope if slope > 0 else math.inf)
     return np.array(out)
 
 
@@ -100,13 +107,16 @@ def test_a_plan_orders_the_moves_by_their_promise_and_lifts_each_as_numpy_does(
     near = Model(rng.uniform(0.0, 1e-5, 6), rng.normal(0.0, 0.5, (6, 3)),
                  np.zeros((6, 2), dtype=np.int64))
     press, drive = 0.8, rng.normal(0.0, 0.3, 3)
-    want = float(work.value(base)) + gain
+    want = planner.value(base) + gain
     order, targets, needed = planner.plan(base, moves, near, press, drive, tries, gain, want)
     promise = moves @ drive + press * (np.min(near.gaps + moves @ near.slopes.T, axis=1)
                                        - np.min(near.gaps))
     expected = np.argsort(-promise, kind='stable')[:tries]
     assert np.array_equal(order, expected)
     assert np.allclose(targets, planner.laterals(base, moves[order]), rtol=0, atol=1e-15)
+    for pose in targets:
+        assert planner.value(pose) == pytest.approx(numpy_worth(search, work, pose)[0],
+                                                    rel=1e-12, abs=1e-15)
     lifts = numpy_lifts(search, work, targets, want) + standoff
     finite = np.isfinite(lifts)
     assert finite.any()
@@ -118,6 +128,7 @@ def test_a_plan_orders_the_moves_by_their_promise_and_lifts_each_as_numpy_does(
     plain = np.min(near.gaps + moves @ near.slopes.T, axis=1)
     assert np.array_equal(order, np.argsort(-plain, kind='stable')[:tries])
     assert np.all(needed == gain + standoff)
+    assert travel.value(base) == pytest.approx(search.depth(base), rel=0, abs=1e-15)
 
 
 def test_without_features_the_drive_alone_orders_the_moves() -> None:

@@ -5,11 +5,14 @@
 // travel along the push each must reach to gain (one Newton step of the lift, the
 // ligaments weighed at every pose: _tissue.h). A step considers up to 27 moves of a few
 // arrays each; numpy's calls on arrays that small cost several times their arithmetic.
+// What a pose at contact is worth (the objective itself) is computed here too, from the
+// same terms.
 //
 // The pose of a move x = (slide e1, slide e2, arc): R = I + sin(a) K + (1 - cos(a)) K^2
 // with K the push's cross-product matrix and a = arc / arm, the body turned by R about its
-// centroid c and slid by x0 e1 + x1 e2. The lift: the objective at a lateral pose lifted by
-// s along the push is, per unit load, the load's work less the ligaments' energy; from no
+// centroid c and slid by x0 e1 + x1 e2. The objective at a pose is, per unit load, the
+// load's work (l . c along a fixed line, -|o - c| toward a point o) less the ligaments'
+// energy, or the depth along the push for the travel alone. The lift: from no
 // lift its rate is l . push - dE/ds / F (l the load's line), and the lift that gains is
 // (want - value) / rate where the rate is positive (none otherwise: inf). The objective is
 // concave along the push, so the step lifts no higher than needed.
@@ -42,6 +45,10 @@ struct Planner {
 
     // the pose (16,) of `base` moved by `move` (3,)
     void lateral(const double *base, const double *move, double *out) const;
+    // what the pose is worth (the objective per unit load: the load's work less the
+    // ligaments' energy, or the depth along the push for the travel alone); with `rate`,
+    // also the objective's rate under a lift along the push
+    double worth(const double *pose, double *rate = nullptr);
     // the travel along the push the pose `target` must reach for the objective to be `want`
     double lift(const double *target, double want);
 };
@@ -67,13 +74,17 @@ void Planner::lateral(const double *base, const double *move, double *out) const
     out[15] = 1.0;
 }
 
-double Planner::lift(const double *target, double want) {
+double Planner::worth(const double *pose, double *rate) {
+    if (!work) {
+        if (rate) *rate = 1.0;
+        return pose[3] * push[0] + pose[7] * push[1] + pose[11] * push[2];
+    }
     double energy = 0.0, force[3] = {0.0, 0.0, 0.0};
-    if (tissue) energy = fibres.push(target, force);
+    if (tissue) energy = fibres.push(pose, force);
     double centre[3];
     for (int i = 0; i < 3; ++i)
-        centre[i] = target[4 * i] * centroid[0] + target[4 * i + 1] * centroid[1] + target[4 * i + 2] * centroid[2] +
-                    target[4 * i + 3];
+        centre[i] = pose[4 * i] * centroid[0] + pose[4 * i + 1] * centroid[1] + pose[4 * i + 2] * centroid[2] +
+                    pose[4 * i + 3];
     double value, line_push;
     if (toward) {
         double d[3] = {point[0] - centre[0], point[1] - centre[1], point[2] - centre[2]};
@@ -84,8 +95,14 @@ double Planner::lift(const double *target, double want) {
         value = centre[0] * push[0] + centre[1] * push[1] + centre[2] * push[2];
         line_push = 1.0;
     }
-    const double slope = line_push - (force[0] * push[0] + force[1] * push[1] + force[2] * push[2]) / load_n;
-    return slope > 0.0 ? (want - (value - energy / load_n)) / slope : kInf;
+    if (rate) *rate = line_push - (force[0] * push[0] + force[1] * push[1] + force[2] * push[2]) / load_n;
+    return value - energy / load_n;
+}
+
+double Planner::lift(const double *target, double want) {
+    double slope;
+    const double value = worth(target, &slope);
+    return slope > 0.0 ? (want - value) / slope : kInf;
 }
 
 // ---- Python -----------------------------------------------------------------------------
@@ -281,6 +298,14 @@ PyObject *planner_plan(PyPlanner *self, PyObject *args) {
                          bytes_of(needed.data(), 8 * t));
 }
 
+// value(pose (4, 4)) -> what the pose is worth (Planner::worth)
+PyObject *planner_value(PyPlanner *self, PyObject *args) {
+    PyObject *po;
+    double pose[16];
+    if (!ready(self) || !PyArg_ParseTuple(args, "O", &po) || !read_doubles(po, 16, pose, "pose")) return nullptr;
+    return PyFloat_FromDouble(self->planner->worth(pose));
+}
+
 // pushes(poses (m, 4, 4)) -> (energies (m,), dE/dt (m, 3)) as bytes: the ligaments weighed
 // as the lifts weigh them (zero without ligaments)
 PyObject *planner_pushes(PyPlanner *self, PyObject *args) {
@@ -302,6 +327,8 @@ PyMethodDef planner_methods[] = {
      "laterals(base, moves) -> poses: base moved by each lateral move"},
     {"plan", reinterpret_cast<PyCFunction>(planner_plan), METH_VARARGS,
      "plan(base, moves, gaps, slopes, press, drive, tries, gain, want) -> (order, targets, needed)"},
+    {"value", reinterpret_cast<PyCFunction>(planner_value), METH_VARARGS,
+     "value(pose) -> what the pose is worth: the objective per unit load"},
     {"pushes", reinterpret_cast<PyCFunction>(planner_pushes), METH_VARARGS,
      "pushes(poses) -> (energies, forces): the ligaments at each pose"},
     {nullptr, nullptr, 0, nullptr}};

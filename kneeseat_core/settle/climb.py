@@ -119,15 +119,16 @@ class _Climb:
 
     # ---- measuring -------------------------------------------------------------------
     def arrive(self, target: Pose, expected: float = 0.0, window_res: float | None = None,
-               short_of: float = -math.inf, seeds: Ints | None = None
-               ) -> _Place | _Short | None:
+               short_of: float = -math.inf, seeds: Ints | None = None,
+               state: Floats | None = None) -> _Place | _Short | None:
         """The lateral pose `target` moved along Δ to contact: the travel measured exactly
         from it lowered by enough that the lowered pose is free (`expected`: the travel
         expected there, negative where `target` may be in collision), with the features
         within `window_res` resolutions (default: the tuning's window); None: no contact
         along Δ (the body slid off the fixed body); `_SHORT`: the travel is less than
         `short_of` (the search stops as soon as a gap says so). `seeds`: pairs of
-        triangles likely to close first there (`SweepPair.touch`)."""
+        triangles likely to close first there (`SweepPair.touch`); `state`: the lateral
+        state of `target` where the caller knows it (a move's own: no pose to read it from)."""
         s, sweep = self.search, self.sweep
         window = (self.tuning.window_res if window_res is None else window_res) \
             * s.params.resolution_m
@@ -150,7 +151,8 @@ class _Climb:
         pose = translated(target, rise * s.push)
         shifted = Touch(touch.travel, False, touch.gaps - rise, touch.normals,
                         touch.points + rise * s.push, touch.rooms, touch.kinds, touch.faces)
-        return _Place(pose, self.objective.value(pose), self.state_of(pose), shifted,
+        return _Place(pose, self.planner.value(pose),
+                      self.state_of(pose) if state is None else state, shifted,
                       window_res is not None and window_res >= self.tuning.pool_window_res)
 
     def state_of(self, pose: Pose) -> Floats:
@@ -355,10 +357,13 @@ class _Climb:
                                              offsets, t.witnesses, self.standoff, deepest, i)
             if i >= len(moves):
                 return None
-            window = t.pool_window_res if self._beyond_pool(self.state_of(targets[i])) else None
+            # a lateral move adds itself to the state (a lift along Δ changes none of it)
+            state = here.state + moves[i]
+            window = t.pool_window_res if self._beyond_pool(state) else None
             # the witnesses, none short of the travel needed, bound it from above: the
             # search starts from them
-            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]), seeds)
+            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]), seeds,
+                                state)
             if place is None:
                 return (Status.LOST, LOST_CONTACT)
             if isinstance(place, _Place) and place.value - here.value >= gain:

@@ -32,15 +32,15 @@ from kneeseat_core.ligaments import Tissue
 from kneeseat_core.typed import Floats, Pose
 from .search import Search
 
-__all__ = ['LiftTerms', 'Objective', 'Travel', 'Work', 'objective_for']
+__all__ = ['ObjectiveTerms', 'Objective', 'Travel', 'Work', 'objective_for']
 
 # Poses whose tissue evaluation a Work objective keeps.
 _SEEN = 4
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class LiftTerms:
-    """What weighs the lift a move needs to gain (`Objective.lift_terms`)."""
+class ObjectiveTerms:
+    """What the planner computes the objective from (`Objective.terms`)."""
 
     work: bool                   # the load's work less the tissue's energy (else the travel)
     load_n: float                # N, the load the work and energy are taken per unit of
@@ -49,16 +49,13 @@ class LiftTerms:
 
 
 class Objective:
-    """The climb's measure of a pose at contact, and its first-order model."""
+    """The climb's measure of a pose at contact (its value is computed by the planner from
+    `terms`), and its first-order model."""
 
     gain = ''        # what a gain is measured in, for the settle's reasons
     # the share of the resolution the objective is climbed to: a smooth energy's maximum
     # lies in a valley the travel's resolution would leave a millimetre wide
     precision = 1.0
-
-    def value(self, pose: Pose) -> float:
-        """The objective with the body at `pose` (m)."""
-        raise NotImplementedError
 
     def first_order(self, pose: Pose) -> tuple[float, Floats]:
         """(press, drive (3,)) at `pose`: a move x over (slide e1, slide e2, arc) that
@@ -66,13 +63,14 @@ class Objective:
         order."""
         raise NotImplementedError
 
-    def lift_terms(self) -> LiftTerms:
-        """What the planner (`kneeseat_core.settle.planner`) needs to weigh how far along Δ
-        each move it considers must be lifted for the objective there to gain: one Newton
-        step from no lift (inf where the body is not pressed on). The objective is concave
-        along Δ (the load's work is; the energy is convex in each length, each length convex
-        along Δ), so the step lifts no higher than needed: a contact short of it proves
-        that the move cannot gain."""
+    def terms(self) -> ObjectiveTerms:
+        """What the planner (`kneeseat_core.settle.planner`, compiled) computes the
+        objective from: its value at a pose at contact, and how far along Δ each move it
+        considers must be lifted for the objective there to gain (one Newton step from no
+        lift, inf where the body is not pressed on). The objective is concave along Δ (the
+        load's work is; the energy is convex in each length, each length convex along Δ),
+        so the step lifts no higher than needed: a contact short of it proves that the
+        move cannot gain."""
         raise NotImplementedError
 
     def pressing(self, pose: Pose) -> float:
@@ -92,18 +90,14 @@ class Travel(Objective):
     search: Search
     gain = 'along the push'
 
-    def value(self, pose: Pose) -> float:
-        """The pose's depth along Δ (the travel up to a constant)."""
-        return self.search.depth(pose)
-
     def first_order(self, pose: Pose) -> tuple[float, Floats]:
         """The travel itself: (1, 0)."""
         return 1.0, np.zeros(3)
 
-    def lift_terms(self) -> LiftTerms:
-        """The travel alone: a lateral move leaves the depth along Δ as it was, so a move
-        must reach the gain itself."""
-        return LiftTerms(False, 1.0, None, None)
+    def terms(self) -> ObjectiveTerms:
+        """The travel alone: a pose is worth its depth along Δ, and a lateral move leaves
+        the depth as it was, so a move must reach the gain itself."""
+        return ObjectiveTerms(False, 1.0, None, None)
 
     def pressing(self, pose: Pose) -> float:
         """Always pressed: the push is all there is."""
@@ -130,9 +124,9 @@ class Work(Objective):
     gain = "in the load's work less the ligaments' energy (per unit load)"
     precision = 0.1
 
-    def lift_terms(self) -> LiftTerms:
+    def terms(self) -> ObjectiveTerms:
         """The load (its size and the point it pulls toward, if any) and the tissue."""
-        return LiftTerms(True, self.load_n, self.toward, self.tissue)
+        return ObjectiveTerms(True, self.load_n, self.toward, self.tissue)
 
     def _along(self, force: Floats) -> float:
         """dE/ds / F: the tissue's rate along Δ per unit load, from its dE/dt `force`."""
@@ -174,19 +168,6 @@ class Work(Objective):
             del self._seen[next(iter(self._seen))]          # the oldest
         self._seen[key] = (energy / self.load_n, along, lateral)
         return energy / self.load_n, along, lateral
-
-    def value(self, pose: Pose) -> float:
-        """The load's work (l . c, or -|o - c|) less E / F (m)."""
-        per_load = self._tissue(pose)[0]
-        return self._work(pose) - per_load
-
-    def _work(self, pose: Pose) -> float:
-        """The load's work per unit load, l . c or -|o - c| (m)."""
-        centre = self.search.centre(pose)
-        if self.toward is None:
-            return float(self.search.push @ centre)
-        d = self.toward - centre
-        return -math.sqrt(float(d @ d))
 
     def _rates(self, pose: Pose) -> tuple[float, Floats]:
         """dE/ds / F along Δ, and dE/dx / F over (slide e1, slide e2, arc), at `pose`."""

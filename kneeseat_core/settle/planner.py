@@ -5,9 +5,10 @@ it orders them by what the near-active features promise (`kneeseat_core.settle.m
 turns the most promising into poses (a slide across the push Δ and a spin about the axis
 through the body's centroid parallel to it) and asks how far along Δ each must then reach
 to gain: one Newton step of the lift, from the objective's terms
-(`Objective.lift_terms`: the load's line and the ligaments, weighed at every pose). On
+(`Objective.terms`: the load's line and the ligaments, weighed at every pose). On
 arrays that small numpy's calls cost several times the arithmetic, so the whole plan is
-one compiled call.
+one compiled call; what a pose at contact is worth (`value`) is computed there too, from
+the same terms.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ class Planner:
 
     def __init__(self, search: Search, objective: Objective, arm: float,
                  standoff: float) -> None:
-        terms = objective.lift_terms()
+        terms = objective.terms()
         toward = None if terms.toward is None else _floats(terms.toward)
         self._native = _moves.Planner(
             _floats(search.push), _floats(search.e1), _floats(search.e2), _floats(search.free),
@@ -72,6 +73,11 @@ class Planner:
         return (np.frombuffer(order, dtype=np.int64),
                 np.frombuffer(targets, dtype=np.float64).reshape(-1, 4, 4),
                 np.frombuffer(needed, dtype=np.float64))
+
+    def value(self, pose: Pose) -> float:
+        """What `pose` (at contact) is worth: the objective per unit load (m), the load's
+        work less the ligaments' energy, or the depth along Δ for the travel alone."""
+        return float(self._native.value(_floats(pose)))
 
     def pushes(self, poses: Floats) -> tuple[Floats, Floats]:
         """The ligaments' energies (m,) and dE/dt (m, 3) at each of `poses` (m, 4, 4) as the
