@@ -14,7 +14,8 @@ from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.ligaments import parse_ligaments, Tissue
 from kneeseat_core.meshes import CollisionPair
 from kneeseat_core.settle import _moves, _simplex, SettleParams
-from kneeseat_core.settle.model import best_move, Model
+from kneeseat_core.meshes.sweep import Touch
+from kneeseat_core.settle.model import best_move, Model, STEEPEST
 from kneeseat_core.settle.objective import Travel, Work
 from kneeseat_core.settle.planner import Planner
 from kneeseat_core.settle.search import Search
@@ -91,6 +92,45 @@ def numpy_lifts(search: Search, work: Work, targets: np.ndarray, want: float) ->
     return np.array(out)
 
 
+@pytest.mark.parametrize('locked', [None, (0.0, 0.0, 1.0)])
+def test_a_model_keeps_the_features_within_reach_with_their_slopes(
+        locked: tuple[float, float, float] | None) -> None:
+    """The model's features and slopes against numpy: each slope is the rate of the
+    feature's gap under a move, found here by moving the body's point (a slide, a spin
+    about the axis through the centroid parallel to the push) and taking the change of the
+    gap along the push onto the feature's plane."""
+    rng = np.random.default_rng(20261207)
+    var = sc.variant('key_pocket', 'rotated')
+    params = SettleParams(push=tuple(float(v) for v in var.push), locked_slide=locked)
+    search = Search(CollisionPair(var.fixed, var.moving), var.start, params, var.start)
+    arm = 0.02
+    planner = Planner(search, Travel(search), arm, 0.0)
+    k = 60
+    normals = search.push + rng.normal(0.0, 0.6, (k, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[normals @ search.push < 0] *= -1.0
+    touch = Touch(0.0, False, rng.uniform(0.0, 5e-5, k), normals, rng.normal(0.0, 0.02, (k, 3)),
+                  rng.uniform(0.0, 1e-4, k), np.zeros(k, dtype=np.int64),
+                  rng.integers(0, 100, (k, 2)))
+    centre = rng.normal(0.0, 0.01, 3)
+    for within, room in ((np.inf, 0.0), (2e-5, 3e-5), (2e-5, 1.0)):
+        model = planner.model(touch, centre, within, room)
+        near = touch.gaps <= within
+        if (near & (touch.rooms >= room)).any():
+            near &= touch.rooms >= room
+        rates = []
+        for j in range(k):         # the gap's rate under a unit of each move coordinate
+            n, q = touch.normals[j], touch.points[j]
+            moved = [search.e1, search.e2, np.cross(search.push, q - centre) / arm]
+            rates.append([-(n @ dp) / (n @ search.push) * f for dp, f in zip(moved, search.free)])
+        rates = np.array(rates)
+        near &= np.max(np.abs(rates), axis=1) <= STEEPEST
+        assert 0 < near.sum() < k
+        assert np.array_equal(model.gaps, touch.gaps[near])
+        assert np.array_equal(model.faces, touch.faces[near])
+        assert np.allclose(model.slopes, rates[near], rtol=1e-12, atol=1e-15)
+
+
 @pytest.mark.parametrize('toward', [None, (0.0, 0.3, 0.05)])
 @pytest.mark.parametrize('tries', [None, 5])
 def test_a_plan_orders_the_moves_by_their_promise_and_lifts_each_as_numpy_does(
@@ -148,7 +188,7 @@ def test_the_compiled_planner_refuses_bad_arrays_without_crashing() -> None:
     laws = (np.ones(2), np.ones(2), np.ones(2))
 
     def planner(fibre_of: object, local: object = local) -> _moves.Planner:
-        return _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 1.0, 0.0, True, 1.0,
+        return _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 1.0, 0.0, 3.0, True, 1.0,
                               None, (local, sign, fixed, fibre_of, *laws))
     good = planner(np.array([0, 1]))
     assert len(good.pushes(np.eye(4)[None])[0]) == 8
@@ -168,8 +208,11 @@ def test_the_compiled_planner_refuses_bad_arrays_without_crashing() -> None:
     with pytest.raises(TypeError):
         good.pushes('x')
     with pytest.raises(ValueError):
-        _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 0.0, 0.0, False, 1.0, None,
-                       None)
+        _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 0.0, 0.0, 3.0, False, 1.0,
+                       None, None)
+    with pytest.raises(ValueError):
+        good.model(np.zeros(2), np.zeros((2, 3)), np.zeros((3, 3)), np.zeros(2),
+                   np.zeros((2, 2), dtype=np.int64), np.zeros(3), 1.0, 0.0)
 
 
 @pytest.mark.parametrize('seed', range(6))

@@ -36,6 +36,7 @@ constexpr double kInf = std::numeric_limits<double>::infinity();
 struct Planner {
     double push[3], e1[3], e2[3], free[3], centroid[3];
     double arm = 1.0, standoff = 0.0, load_n = 1.0;
+    double steepest = 3.0;       // a feature whose slope is steeper is left out of models
     double k[9], k2[9];          // the push's cross-product matrix K and K @ K
     bool work = false;           // the objective is the load's work less the energy
     bool toward = false;         // the load pulls toward a point (else along the push)
@@ -141,14 +142,16 @@ void planner_dealloc(PyPlanner *self) {
     Py_TYPE(self)->tp_free(reinterpret_cast<PyObject *>(self));
 }
 
-// Planner(push, e1, e2, free, centroid, arm, standoff, work, load_n, toward|None, fibres|None)
+// Planner(push, e1, e2, free, centroid, arm, standoff, steepest, work, load_n, toward|None,
+// fibres|None)
 // fibres: (seg_local (s, 3), seg_sign (s,), seg_fixed (s, 3), seg_fibre (s,) int64, slack
 // (f,), stiffness (f,), transition (f,))
 int planner_init(PyPlanner *self, PyObject *args, PyObject *) {
     PyObject *po, *ao, *bo, *fo, *co, *to, *so;
-    double arm, standoff, load_n;
+    double arm, standoff, steepest, load_n;
     int work;
-    if (!PyArg_ParseTuple(args, "OOOOOddpdOO", &po, &ao, &bo, &fo, &co, &arm, &standoff, &work, &load_n, &to, &so))
+    if (!PyArg_ParseTuple(args, "OOOOOdddpdOO", &po, &ao, &bo, &fo, &co, &arm, &standoff, &steepest, &work, &load_n,
+                          &to, &so))
         return -1;
     auto *p = new Planner();
     bool ok = read_doubles(po, 3, p->push, "push") && read_doubles(ao, 3, p->e1, "e1") &&
@@ -156,10 +159,11 @@ int planner_init(PyPlanner *self, PyObject *args, PyObject *) {
               read_doubles(co, 3, p->centroid, "centroid");
     p->arm = arm;
     p->standoff = standoff;
+    p->steepest = steepest;
     p->work = work;
     p->load_n = load_n;
-    if (ok && !(arm > 0.0 && load_n > 0.0 && standoff >= 0.0)) {
-        PyErr_SetString(PyExc_ValueError, "Planner: arm and load positive, standoff not negative");
+    if (ok && !(arm > 0.0 && load_n > 0.0 && standoff >= 0.0 && steepest > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "Planner: arm, load and steepest positive, standoff not negative");
         ok = false;
     }
     if (ok && to != Py_None) {
@@ -298,6 +302,72 @@ PyObject *planner_plan(PyPlanner *self, PyObject *args) {
                          bytes_of(needed.data(), 8 * t));
 }
 
+// model(gaps (k,), normals (k, 3), points (k, 3), rooms (k,), faces (k, 2) int64, centre
+// (3,), within, room) -> (gaps, slopes (k', 3), faces) as bytes: the travel's first-order
+// model about a pose from its features (kneeseat_core/settle/model.py): those closing
+// within `within` that hold for a slide of at least `room` (all of those within, where
+// none does) and are not steeper than `steepest`. A feature with unit normal n (n . push
+// >= 0) at the moving body's point p changes its gap by -n . dp / n . push under a move
+// that moves p by dp: dp = x0 e1 + x1 e2 + x2 (push x (p - c)) / arm for the move x (c the
+// centroid, the spin's axis through it), so its slopes over x are -(n . e1, n . e2,
+// n . (push x (p - c)) / arm) / n . push, a locked move's zero; one whose slope exceeds
+// `steepest` in any coordinate holds for a sliver of a move (a crossing of two edges
+// nearly parallel seen along the push, a triangle seen edge on) and is left out.
+PyObject *planner_model(PyPlanner *self, PyObject *args) {
+    PyObject *obj[6];
+    double within, room;
+    if (!ready(self) || !PyArg_ParseTuple(args, "OOOOOOdd", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5],
+                                          &within, &room))
+        return nullptr;
+    const Planner &p = *self->planner;
+    double centre[3];
+    if (!read_doubles(obj[5], 3, centre, "centre")) return nullptr;
+    Py_buffer b[5];
+    Py_ssize_t k = 0, rows;
+    int held = 0;
+    bool ok = take_rows(obj[0], b[0], 1, k, "gaps") && ++held;
+    ok = ok && take_rows(obj[1], b[1], 3, rows, "normals") && ++held && rows == k;
+    ok = ok && take_rows(obj[2], b[2], 3, rows, "points") && ++held && rows == k;
+    ok = ok && take_rows(obj[3], b[3], 1, rows, "rooms") && ++held && rows == k;
+    ok = ok && kneeseat::get_buffer(obj[4], &b[4], "q", 8, "faces", PyExc_ValueError) && ++held &&
+         b[4].len == 16 * k;
+    if (!ok) {
+        for (int i = 0; i < held; ++i) PyBuffer_Release(&b[i]);
+        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "Planner.model: features of one count k");
+        return nullptr;
+    }
+    const double *gaps = static_cast<const double *>(b[0].buf), *normals = static_cast<const double *>(b[1].buf),
+                 *points = static_cast<const double *>(b[2].buf), *rooms = static_cast<const double *>(b[3].buf);
+    const int64_t *faces = static_cast<const int64_t *>(b[4].buf);
+    // a feature that holds for the room if any within does
+    bool roomy = false;
+    for (Py_ssize_t j = 0; j < k && !roomy; ++j) roomy = gaps[j] <= within && rooms[j] >= room;
+    std::vector<double> out_gaps, out_slopes;
+    std::vector<int64_t> out_faces;
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        if (!(gaps[j] <= within) || (roomy && !(rooms[j] >= room))) continue;
+        const double *n = normals + 3 * j, *q = points + 3 * j;
+        const double d[3] = {q[0] - centre[0], q[1] - centre[1], q[2] - centre[2]};
+        const double lever[3] = {(p.push[1] * d[2] - p.push[2] * d[1]) / p.arm,
+                                 (p.push[2] * d[0] - p.push[0] * d[2]) / p.arm,
+                                 (p.push[0] * d[1] - p.push[1] * d[0]) / p.arm};
+        const double along = n[0] * p.push[0] + n[1] * p.push[1] + n[2] * p.push[2];
+        const double across[3] = {(n[0] * p.e1[0] + n[1] * p.e1[1] + n[2] * p.e1[2]) * p.free[0],
+                                  (n[0] * p.e2[0] + n[1] * p.e2[1] + n[2] * p.e2[2]) * p.free[1],
+                                  (n[0] * lever[0] + n[1] * lever[1] + n[2] * lever[2]) * p.free[2]};
+        const double steepest = std::max({std::fabs(across[0]), std::fabs(across[1]), std::fabs(across[2])});
+        if (!(steepest <= p.steepest * along)) continue;
+        out_gaps.push_back(gaps[j]);
+        for (int i = 0; i < 3; ++i) out_slopes.push_back(-across[i] / along);
+        out_faces.push_back(faces[2 * j]);
+        out_faces.push_back(faces[2 * j + 1]);
+    }
+    for (int i = 0; i < held; ++i) PyBuffer_Release(&b[i]);
+    const Py_ssize_t kept = static_cast<Py_ssize_t>(out_gaps.size());
+    return Py_BuildValue("(NNN)", bytes_of(out_gaps.data(), 8 * kept), bytes_of(out_slopes.data(), 24 * kept),
+                         bytes_of(out_faces.data(), 16 * kept));
+}
+
 // value(pose (4, 4)) -> what the pose is worth (Planner::worth)
 PyObject *planner_value(PyPlanner *self, PyObject *args) {
     PyObject *po;
@@ -327,6 +397,8 @@ PyMethodDef planner_methods[] = {
      "laterals(base, moves) -> poses: base moved by each lateral move"},
     {"plan", reinterpret_cast<PyCFunction>(planner_plan), METH_VARARGS,
      "plan(base, moves, gaps, slopes, press, drive, tries, gain, want) -> (order, targets, needed)"},
+    {"model", reinterpret_cast<PyCFunction>(planner_model), METH_VARARGS,
+     "model(gaps, normals, points, rooms, faces, centre, within, room) -> (gaps, slopes, faces)"},
     {"value", reinterpret_cast<PyCFunction>(planner_value), METH_VARARGS,
      "value(pose) -> what the pose is worth: the objective per unit load"},
     {"pushes", reinterpret_cast<PyCFunction>(planner_pushes), METH_VARARGS,

@@ -43,8 +43,8 @@ from kneeseat_core.errors import NoContactError
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.meshes.sweep import SweepPair, Touch
 from kneeseat_core.status import Status
-from kneeseat_core.typed import Bools, Floats, Ints, Pose
-from .model import best_move, feature_slopes, Model, STEEPEST
+from kneeseat_core.typed import Floats, Ints, Pose
+from .model import best_move, Model, STEEPEST
 from .objective import Objective, objective_for
 from .planner import Planner
 from .search import Contacts, LOST_CONTACT, Search, SettleResult, translated
@@ -70,10 +70,8 @@ class _Place:
     state: Floats
     touch: Touch
     wide: bool
-    # the models of the travel about it, by (within, room), and the slopes of all its
-    # features they are drawn from (`_Climb.model`)
+    # the models of the travel about it, by (within, room) (`_Climb.model`)
     models: dict[tuple[float, float], Model] = field(default_factory=dict)
-    slopes: tuple[Floats, Bools] | None = None
 
 
 class _Short:
@@ -163,22 +161,11 @@ class _Climb:
 
     def model(self, place: _Place, within: float = math.inf, room: float = 0.0) -> Model:
         """The model of the travel about `place` from its features closing within `within`
-        that hold for a slide of at least `room` (a feature that stops being one sooner - a
-        crossing of two edges nearly parallel seen along Δ runs off its edge within
-        micrometres - stands for a slope the surfaces have only that far)."""
+        that hold for a slide of at least `room` (`Planner.model`), kept with the place."""
         found = place.models.get((within, room))
-        if found is not None:
-            return found
-        s, t = self.search, place.touch
-        if place.slopes is None:
-            place.slopes = feature_slopes(t.normals, t.points, s.push, s.e1, s.e2,
-                                          s.centre(place.pose), self.arm, s.free)
-        slopes, kept = place.slopes
-        near = t.gaps <= within
-        if (near & (t.rooms >= room)).any():
-            near &= t.rooms >= room
-        near &= kept
-        found = place.models[(within, room)] = Model(t.gaps[near], slopes[near], t.faces[near])
+        if found is None:
+            found = place.models[(within, room)] = self.planner.model(
+                place.touch, self.search.centre(place.pose), within, room)
         return found
 
     def settle_in(self, place: _Place) -> None:

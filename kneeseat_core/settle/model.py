@@ -8,7 +8,9 @@ the move is, to first order,
 
     s(x) = min_k (g_k + a_k . x).
 
-For pure slides each term is exact while its feature stays one (the vertex over the same
+Each feature's slopes are computed from its normal and point by the planner
+(`kneeseat_core.settle.planner`, `Planner.model`, compiled with the moves it plans). For
+pure slides each term is exact while its feature stays one (the vertex over the same
 triangle, the crossing on the same edges); the climb uses the model to order its moves, to
 propose the move that climbs where several contacts hold the body at once (`best_move`: the
 objective press s(x) + drive . x is then best raised along a combination of slide and spin
@@ -25,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kneeseat_core.typed import Bools, Floats, Ints
+from kneeseat_core.typed import Floats, Ints
 from . import _simplex
 
-__all__ = ['Model', 'STEEPEST', 'best_move', 'feature_slopes']
+__all__ = ['Model', 'STEEPEST', 'best_move']
 
 # A feature whose gap changes faster than this with a move (m of gap per m of move, in any
 # coordinate) is left out of the model: a crossing of two edges nearly parallel seen along
@@ -50,32 +52,6 @@ class Model:
         """(m,) the modelled travel after each of `moves` (m, 3)."""
         out: Floats = np.min(self.gaps[None, :] + moves @ self.slopes.T, axis=1)
         return out
-
-
-def feature_slopes(normals: Floats, points: Floats, push: Floats, e1: Floats, e2: Floats,
-                   centre: Floats, arm: float, free: Floats) -> tuple[Floats, Bools]:
-    """The slopes (k, 3) of features (`Touch`: unit normals (k, 3) with n . Δ >= 0, the
-    moving body's points there (k, 3)) over (slide e1, slide e2, arc), spins about the axis
-    through `centre` parallel to Δ at one radian per `arm` of arc, `free` (3,) zero for a
-    locked move; and (k,) which are kept: a feature steeper than `STEEPEST` is left out of
-    every model (its slope is zero here). Each row is its feature's own, whichever others
-    are asked with it, so a model is any selection of the kept rows."""
-    d = points - centre
-    lever = np.empty_like(d)              # push x d, one column at a time
-    lever[:, 0] = push[1] * d[:, 2] - push[2] * d[:, 1]
-    lever[:, 1] = push[2] * d[:, 0] - push[0] * d[:, 2]
-    lever[:, 2] = push[0] * d[:, 1] - push[1] * d[:, 0]
-    lever /= arm
-    along = normals @ push
-    across = np.empty_like(d)
-    across[:, 0] = normals @ e1
-    across[:, 1] = normals @ e2
-    across[:, 2] = np.einsum('ij,ij->i', normals, lever)
-    across *= free
-    kept = np.max(np.abs(across), axis=1) <= STEEPEST * along
-    slopes = np.zeros_like(d)
-    slopes[kept] = -across[kept] / along[kept, None]
-    return slopes, kept
 
 
 def best_move(model: Model, press: float, drive: Floats, radius: Floats) -> tuple[Floats, float]:

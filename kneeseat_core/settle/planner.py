@@ -15,9 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 from kneeseat_core.ligaments import Tissue
+from kneeseat_core.meshes.sweep import Touch
 from kneeseat_core.typed import Floats, Ints, Pose
 from . import _moves
-from .model import Model
+from .model import Model, STEEPEST
 from .objective import Objective
 from .search import Search
 
@@ -47,8 +48,8 @@ class Planner:
         toward = None if terms.toward is None else _floats(terms.toward)
         self._native = _moves.Planner(
             _floats(search.push), _floats(search.e1), _floats(search.e2), _floats(search.free),
-            _floats(search.pair.moving.centroid), float(arm), float(standoff), terms.work,
-            float(terms.load_n), toward, _fibres(terms.tissue))
+            _floats(search.pair.moving.centroid), float(arm), float(standoff), STEEPEST,
+            terms.work, float(terms.load_n), toward, _fibres(terms.tissue))
 
     def laterals(self, base: Pose, moves: Floats) -> Floats:
         """`base` (4, 4) slid by move[0] e1 + move[1] e2 and spun by move[2] / arm (rad)
@@ -57,6 +58,22 @@ class Planner:
         made."""
         raw = self._native.laterals(_floats(base), _floats(moves))
         return np.frombuffer(raw, dtype=np.float64).reshape(-1, 4, 4)
+
+    def model(self, touch: Touch, centre: Floats, within: float, room: float) -> Model:
+        """The travel's first-order model about a pose from its features `touch` (gaps
+        from the pose; `centre` the body's centroid there, the spins' axis through it):
+        those closing within `within` that hold for a slide of at least `room` (all of those
+        within, where none does; a feature that stops being one sooner - a crossing of two
+        edges nearly parallel seen along Δ runs off its edge within micrometres - stands
+        for a slope the surfaces have only that far), none steeper than `STEEPEST`
+        (`kneeseat_core.settle.model`: a slope that steep holds for a sliver of a move)."""
+        gaps, slopes, faces = self._native.model(
+            touch.gaps, touch.normals, touch.points, touch.rooms,
+            np.ascontiguousarray(touch.faces, dtype=np.int64), _floats(centre), float(within),
+            float(room))
+        return Model(np.frombuffer(gaps, dtype=np.float64),
+                     np.frombuffer(slopes, dtype=np.float64).reshape(-1, 3),
+                     np.frombuffer(faces, dtype=np.int64).reshape(-1, 2))
 
     def plan(self, base: Pose, moves: Floats, near: Model, press: float, drive: Floats,
              tries: int | None, gain: float, want: float) -> tuple[Ints, Floats, Floats]:
