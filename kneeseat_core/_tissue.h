@@ -26,8 +26,11 @@ struct Fibres {
     size_t segments() const { return sign.size(); }
     size_t fibres() const { return slack.size(); }
 
-    // The energy and dE/dt (3,) at a (4, 4) pose.
-    double push(const double *pose, double *force) {
+    // The energy and dE/dt (3,) at a (4, 4) pose; with `torque`, dE/dθ (3,) too for a small
+    // rotation θ about the reference frame's origin (the sum over segments of the moving
+    // end's position, moving_s = the segment's vector less its fixed part, crossed with the
+    // segment's pull).
+    double push(const double *pose, double *force, double *torque = nullptr) {
         const size_t s = segments(), f = fibres();
         vec.resize(3 * s);
         length.resize(s);
@@ -54,6 +57,18 @@ struct Fibres {
         for (size_t i = 0; i < s; ++i) {
             double scale = sign[i] * tension[fibre[i]] / std::max(length[i], 1e-12);
             for (int r = 0; r < 3; ++r) force[r] += scale * vec[3 * i + r];
+        }
+        if (torque) {
+            torque[0] = torque[1] = torque[2] = 0.0;
+            for (size_t i = 0; i < s; ++i) {
+                const double *v = &vec[3 * i], *f = &fixed[3 * i];
+                const double scale = tension[fibre[i]] / std::max(length[i], 1e-12);
+                const double p[3] = {scale * v[0], scale * v[1], scale * v[2]};
+                const double q[3] = {v[0] - f[0], v[1] - f[1], v[2] - f[2]};
+                torque[0] += q[1] * p[2] - q[2] * p[1];
+                torque[1] += q[2] * p[0] - q[0] * p[2];
+                torque[2] += q[0] * p[1] - q[1] * p[0];
+            }
         }
         return energy;
     }

@@ -16,11 +16,12 @@ from kneeseat_core.meshes import CollisionPair
 from kneeseat_core.settle import _moves, _simplex, SettleParams
 from kneeseat_core.meshes.sweep import Touch
 from kneeseat_core.settle.model import best_move, Model, STEEPEST
-from kneeseat_core.settle.objective import Travel, Work
+from kneeseat_core.settle.objective import Objective
 from kneeseat_core.settle.planner import Planner
 from kneeseat_core.settle.search import Search
 
 BODIES = ['femur', 'tibia', 'patella']
+TRAVEL = Objective(False, 1.0, None, None)
 
 
 def fibres(rng: np.random.Generator, paths: bool) -> Tissue:
@@ -57,7 +58,7 @@ def test_the_ligaments_weigh_each_pose_as_its_own_rates(paths: bool) -> None:
     rng = np.random.default_rng(20261202)
     tissue = fibres(rng, paths)
     search = search_of()
-    planner = Planner(search, Work(search, tissue, 250.0, None, 0.02), 0.02, 0.0)
+    planner = Planner(search, Objective(True, 250.0, None, tissue), 0.02, 0.0)
     poses = random_poses(rng, 64)
     for size in (0, 1, 4, 43):
         energies, forces = planner.pushes(poses[:size])
@@ -69,7 +70,7 @@ def test_the_ligaments_weigh_each_pose_as_its_own_rates(paths: bool) -> None:
             assert np.max(np.abs(force - alone_force)) <= 1e-12 * np.max(np.abs(alone_force))
 
 
-def numpy_worth(search: Search, work: Work, pose: np.ndarray) -> tuple[float, float]:
+def numpy_worth(search: Search, work: Objective, pose: np.ndarray) -> tuple[float, float]:
     """What `pose` is worth (the load's work less the energy, per unit load) and the rate of
     that under a lift along the push, written out with numpy."""
     energy, force, _ = work.tissue.rates(pose) if work.tissue else (0.0, np.zeros(3), 0)
@@ -83,13 +84,58 @@ def numpy_worth(search: Search, work: Work, pose: np.ndarray) -> tuple[float, fl
     return value - energy / work.load_n, slope
 
 
-def numpy_lifts(search: Search, work: Work, targets: np.ndarray, want: float) -> np.ndarray:
+def numpy_lifts(search: Search, work: Objective, targets: np.ndarray, want: float) -> np.ndarray:
     """The lift each target needs, one Newton step from none."""
     out = []
     for pose in targets:
         value, slope = numpy_worth(search, work, pose)
         out.append((want - value) / slope if slope > 0 else math.inf)
     return np.array(out)
+
+
+@pytest.mark.parametrize('toward', [None, (0.0, 0.3, 0.05)])
+def test_the_first_order_terms_are_the_objective_s_rates_by_finite_differences(
+        toward: tuple[float, float, float] | None) -> None:
+    """press and drive against central differences of the objective written out with numpy
+    (the load's work less `Tissue.energy` per unit load) under a lift along the push and
+    each lateral move (slides, a spin about the axis through the centroid)."""
+    rng = np.random.default_rng(20261208)
+    search = search_of(toward)
+    arm, tissue = 0.02, fibres(rng, True)
+    objective = Objective(True, 250.0, None if toward is None else np.asarray(toward), tissue)
+    planner = Planner(search, objective, arm, 0.0)
+
+    def worth(pose: np.ndarray) -> float:
+        centre = search.centre(pose)
+        work = float(centre @ search.push) if toward is None \
+            else -float(np.linalg.norm(np.asarray(toward) - centre))
+        return work - tissue.energy(pose) / 250.0
+
+    def moved(pose: np.ndarray, x: np.ndarray, lift: float) -> np.ndarray:
+        turn = rotation_about(search.push, x[2] / arm)
+        centre = search.centre(pose)
+        out = pose.copy()
+        out[:3, :3] = turn @ pose[:3, :3]
+        out[:3, 3] = turn @ (pose[:3, 3] - centre) + centre + x[0] * search.e1 \
+            + x[1] * search.e2 + lift * search.push
+        return out
+    for pose in random_poses(rng, 4):
+        press, drive = planner.first_order(pose)
+        h = 1e-7
+        still = np.zeros(3)
+        lifted = (worth(moved(pose, still, h)) - worth(moved(pose, still, -h))) / (2 * h)
+        assert press == pytest.approx(lifted, rel=1e-5, abs=1e-7)
+        for i in range(3):
+            x = np.zeros(3)
+            x[i] = h
+            rate = (worth(moved(pose, x, 0.0)) - worth(moved(pose, -x, 0.0))) / (2 * h)
+            assert drive[i] == pytest.approx(rate, rel=1e-5, abs=1e-7)
+        pull, load = planner.pulls(pose)
+        assert load - pull == pytest.approx(press, rel=1e-12, abs=1e-15)
+    assert TRAVEL.gain == 'along the push' and TRAVEL.precision == 1.0
+    travel = Planner(search, TRAVEL, arm, 0.0)
+    press, drive = travel.first_order(search.start)
+    assert press == 1.0 and not drive.any()
 
 
 @pytest.mark.parametrize('locked', [None, (0.0, 0.0, 1.0)])
@@ -104,7 +150,7 @@ def test_a_model_keeps_the_features_within_reach_with_their_slopes(
     params = SettleParams(push=tuple(float(v) for v in var.push), locked_slide=locked)
     search = Search(CollisionPair(var.fixed, var.moving), var.start, params, var.start)
     arm = 0.02
-    planner = Planner(search, Travel(search), arm, 0.0)
+    planner = Planner(search, TRAVEL, arm, 0.0)
     k = 60
     normals = search.push + rng.normal(0.0, 0.6, (k, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
@@ -138,8 +184,8 @@ def test_a_plan_orders_the_moves_by_their_promise_and_lifts_each_as_numpy_does(
     rng = np.random.default_rng(20261206)
     search = search_of(toward)
     arm, standoff, gain = 0.02, 2e-6, 1e-6
-    work = Work(search, fibres(rng, True), 250.0,
-                None if toward is None else np.asarray(toward), arm)
+    work = Objective(True, 250.0, None if toward is None else np.asarray(toward),
+                     fibres(rng, True))
     planner = Planner(search, work, arm, standoff)
     base = search.start.copy()
     moves = rng.normal(0.0, 2e-4, (27, 3))
@@ -163,7 +209,7 @@ def test_a_plan_orders_the_moves_by_their_promise_and_lifts_each_as_numpy_does(
     assert np.array_equal(finite, np.isfinite(needed))
     assert np.allclose(needed[finite], lifts[finite], rtol=1e-9, atol=1e-12)
     # the travel alone: every move must reach the gain itself, in the order it promises
-    travel = Planner(search, Travel(search), arm, standoff)
+    travel = Planner(search, TRAVEL, arm, standoff)
     order, _, needed = travel.plan(base, moves, near, 1.0, np.zeros(3), tries, gain, want)
     plain = np.min(near.gaps + moves @ near.slopes.T, axis=1)
     assert np.array_equal(order, np.argsort(-plain, kind='stable')[:tries])
@@ -173,7 +219,7 @@ def test_a_plan_orders_the_moves_by_their_promise_and_lifts_each_as_numpy_does(
 
 def test_without_features_the_drive_alone_orders_the_moves() -> None:
     search = search_of()
-    planner = Planner(search, Travel(search), 0.02, 0.0)
+    planner = Planner(search, TRAVEL, 0.02, 0.0)
     moves = np.array([[1e-4, 0.0, 0.0], [-1e-4, 0.0, 0.0], [0.0, 0.0, 2e-4]])
     empty = Model(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
     order, targets, _ = planner.plan(search.start, moves, empty, 1.0,

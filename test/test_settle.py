@@ -26,7 +26,7 @@ from kneeseat_core.cli import main
 from kneeseat_core.meshes import CollisionPair
 from kneeseat_core.geometry import pose_from, quat_from_matrix, rotation_about
 from kneeseat_core.settle import settle, SettleParams, SettleResult
-from kneeseat_core.settle.objective import Travel
+from kneeseat_core.settle.objective import objective_for
 from kneeseat_core.settle.planner import Planner
 from kneeseat_core.settle.search import Search
 import settle_cases as sc
@@ -162,7 +162,7 @@ def test_lateral_moves_slide_across_the_push_and_spin_about_it(
     params = SettleParams(push=tuple(float(v) for v in var.push), locked_slide=locked)
     search = Search(CollisionPair(var.fixed, var.moving), var.start, params, var.start)
     arm = 0.02
-    planner = Planner(search, Travel(search), arm, 0.0)
+    planner = Planner(search, objective_for(params, None), arm, 0.0)
     for _ in range(20):
         axis = rng.normal(size=3)
         base = pose_from(rotation_about(axis / np.linalg.norm(axis), rng.normal()),

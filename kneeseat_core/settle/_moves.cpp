@@ -52,6 +52,10 @@ struct Planner {
     double worth(const double *pose, double *rate = nullptr);
     // the travel along the push the pose `target` must reach for the objective to be `want`
     double lift(const double *target, double want);
+    // the objective's first-order terms at `pose`: a move x (slide e1, slide e2, arc) that
+    // changes the travel by dt changes it by press dt + drive . x; `pull` the ligaments'
+    // rate along the push per unit load (dE/ds / F), `line` the load's (l . push)
+    void first_order(const double *pose, double &press, double *drive, double &pull, double &line);
 };
 
 void Planner::lateral(const double *base, const double *move, double *out) const {
@@ -104,6 +108,45 @@ double Planner::lift(const double *target, double want) {
     double slope;
     const double value = worth(target, &slope);
     return slope > 0.0 ? (want - value) / slope : kInf;
+}
+
+void Planner::first_order(const double *pose, double &press, double *drive, double &pull, double &line) {
+    pull = 0.0;
+    line = 1.0;
+    drive[0] = drive[1] = drive[2] = 0.0;
+    if (!work) {
+        press = 1.0;
+        return;
+    }
+    double centre[3], l[3] = {push[0], push[1], push[2]};
+    for (int i = 0; i < 3; ++i)
+        centre[i] = pose[4 * i] * centroid[0] + pose[4 * i + 1] * centroid[1] + pose[4 * i + 2] * centroid[2] +
+                    pose[4 * i + 3];
+    if (toward) {
+        double d[3] = {point[0] - centre[0], point[1] - centre[1], point[2] - centre[2]};
+        double length = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        for (int i = 0; i < 3; ++i) l[i] = d[i] / length;
+    }
+    double lateral[3] = {0.0, 0.0, 0.0};
+    if (tissue) {
+        double force[3], torque[3];
+        fibres.push(pose, force, torque);
+        // the spin turns the body about the axis through its centroid along the push, one
+        // radian per arm of arc: its rate is the moment about the centroid along the push
+        const double about_centre = push[0] * (centre[1] * force[2] - centre[2] * force[1]) +
+                                    push[1] * (centre[2] * force[0] - centre[0] * force[2]) +
+                                    push[2] * (centre[0] * force[1] - centre[1] * force[0]);
+        const double moment = (torque[0] * push[0] + torque[1] * push[1] + torque[2] * push[2] - about_centre) / arm;
+        pull = (force[0] * push[0] + force[1] * push[1] + force[2] * push[2]) / load_n;
+        lateral[0] = (force[0] * e1[0] + force[1] * e1[1] + force[2] * e1[2]) / load_n;
+        lateral[1] = (force[0] * e2[0] + force[1] * e2[1] + force[2] * e2[2]) / load_n;
+        lateral[2] = moment / load_n;
+    }
+    line = l[0] * push[0] + l[1] * push[1] + l[2] * push[2];
+    press = line - pull;
+    drive[0] = (l[0] * e1[0] + l[1] * e1[1] + l[2] * e1[2]) - lateral[0];
+    drive[1] = (l[0] * e2[0] + l[1] * e2[1] + l[2] * e2[2]) - lateral[1];
+    drive[2] = -lateral[2];
 }
 
 // ---- Python -----------------------------------------------------------------------------
@@ -368,6 +411,16 @@ PyObject *planner_model(PyPlanner *self, PyObject *args) {
                          bytes_of(out_faces.data(), 16 * kept));
 }
 
+// first_order(pose (4, 4)) -> (press, drive (3,) as bytes, pull, line) (Planner::first_order)
+PyObject *planner_first_order(PyPlanner *self, PyObject *args) {
+    PyObject *po;
+    double pose[16];
+    if (!ready(self) || !PyArg_ParseTuple(args, "O", &po) || !read_doubles(po, 16, pose, "pose")) return nullptr;
+    double press, drive[3], pull, line;
+    self->planner->first_order(pose, press, drive, pull, line);
+    return Py_BuildValue("(dNdd)", press, bytes_of(drive, 24), pull, line);
+}
+
 // value(pose (4, 4)) -> what the pose is worth (Planner::worth)
 PyObject *planner_value(PyPlanner *self, PyObject *args) {
     PyObject *po;
@@ -399,6 +452,8 @@ PyMethodDef planner_methods[] = {
      "plan(base, moves, gaps, slopes, press, drive, tries, gain, want) -> (order, targets, needed)"},
     {"model", reinterpret_cast<PyCFunction>(planner_model), METH_VARARGS,
      "model(gaps, normals, points, rooms, faces, centre, within, room) -> (gaps, slopes, faces)"},
+    {"first_order", reinterpret_cast<PyCFunction>(planner_first_order), METH_VARARGS,
+     "first_order(pose) -> (press, drive, pull, line): the objective's first-order terms"},
     {"value", reinterpret_cast<PyCFunction>(planner_value), METH_VARARGS,
      "value(pose) -> what the pose is worth: the objective per unit load"},
     {"pushes", reinterpret_cast<PyCFunction>(planner_pushes), METH_VARARGS,

@@ -101,7 +101,7 @@ class _Climb:
         self.arm = max(search.pair.moving.reach, p.step_m)
         rot_res = p.rotation_resolution_rad if p.rotation_resolution_rad is not None \
             else p.resolution_m / self.arm          # D4: an arc of one resolution
-        self.objective: Objective = objective_for(search, tissue, self.arm)
+        self.objective: Objective = objective_for(p, tissue)
         self.finest = min(p.resolution_m, rot_res * self.arm)
         self.standoff = tuning.standoff_res * p.resolution_m
         self.lift = self.objective.precision * tuning.probe_lift_res * p.resolution_m
@@ -225,7 +225,7 @@ class _Climb:
         near = self.model(self.here, self.tuning.contact_tol_res * s.params.resolution_m)
         if len(near.gaps) == 0:
             return np.zeros((0, 3))
-        press, drive = self.objective.first_order(self.here.pose)
+        press, drive = self.planner.first_order(self.here.pose)
         x, promised = best_move(near, press, drive, scale * s.free)
         return x[None] if promised > 0.0 and np.any(x != 0.0) else np.zeros((0, 3))
 
@@ -259,9 +259,10 @@ class _Climb:
     def pulled(self) -> End | None:
         """The end when the body's ligaments pull it off the fixed body against its load."""
         assert self.here is not None
-        if self.objective.pressing(self.here.pose) > 0.0:
+        pull, load = self.planner.pulls(self.here.pose)
+        if load - pull > 0.0:
             return None
-        return (Status.PULLED, self.objective.pulled_off(self.here.pose))
+        return (Status.PULLED, self.objective.pulled_off(pull, load))
 
     def prove(self) -> End | None | bool:
         """D5: probe about the pose at every scale not yet tried there; True when a probe
@@ -270,7 +271,7 @@ class _Climb:
         s, t = self.search, self.tuning
         started = time.perf_counter()
         try:
-            press, drive = self.objective.first_order(self.here.pose)
+            press, drive = self.planner.first_order(self.here.pose)
             pressed = max(1.0, press)
             scales = list(zip(t.probe_scales_moves, t.hopeless_res))
             if pressed >= t.pressed_from:
@@ -322,7 +323,7 @@ class _Climb:
         here = self.here
         near = self.model(here, t.contact_tol_res * s.params.resolution_m,
                           t.room_share * float(np.max(np.abs(moves))))
-        press, drive = self.objective.first_order(here.pose)
+        press, drive = self.planner.first_order(here.pose)
         # ordered by what the near-active features promise (to first order they bound the
         # travel after a move from above), each with the travel it must reach: one Newton
         # step of the lift that gains (no more than the lift needed: the objective is

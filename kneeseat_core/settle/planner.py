@@ -5,10 +5,11 @@ it orders them by what the near-active features promise (`kneeseat_core.settle.m
 turns the most promising into poses (a slide across the push Δ and a spin about the axis
 through the body's centroid parallel to it) and asks how far along Δ each must then reach
 to gain: one Newton step of the lift, from the objective's terms
-(`Objective.terms`: the load's line and the ligaments, weighed at every pose). On
-arrays that small numpy's calls cost several times the arithmetic, so the whole plan is
-one compiled call; what a pose at contact is worth (`value`) is computed there too, from
-the same terms.
+(`Objective`: the load's line and the ligaments, weighed at every pose). On arrays that
+small numpy's calls cost several times the arithmetic, so the whole plan is one compiled
+call. The rest of the objective's arithmetic is there too: what a pose at contact is worth
+(`value`), its first-order terms (`first_order`) and the travel's first-order model about
+a pose (`model`).
 """
 from __future__ import annotations
 
@@ -44,12 +45,12 @@ class Planner:
 
     def __init__(self, search: Search, objective: Objective, arm: float,
                  standoff: float) -> None:
-        terms = objective.terms()
-        toward = None if terms.toward is None else _floats(terms.toward)
+        self.objective = objective
+        toward = None if objective.toward is None else _floats(objective.toward)
         self._native = _moves.Planner(
             _floats(search.push), _floats(search.e1), _floats(search.e2), _floats(search.free),
             _floats(search.pair.moving.centroid), float(arm), float(standoff), STEEPEST,
-            terms.work, float(terms.load_n), toward, _fibres(terms.tissue))
+            objective.work, float(objective.load_n), toward, _fibres(objective.tissue))
 
     def laterals(self, base: Pose, moves: Floats) -> Floats:
         """`base` (4, 4) slid by move[0] e1 + move[1] e2 and spun by move[2] / arm (rad)
@@ -95,6 +96,19 @@ class Planner:
         """What `pose` (at contact) is worth: the objective per unit load (m), the load's
         work less the ligaments' energy, or the depth along Δ for the travel alone."""
         return float(self._native.value(_floats(pose)))
+
+    def first_order(self, pose: Pose) -> tuple[float, Floats]:
+        """(press, drive (3,)) at `pose`: a move x over (slide e1, slide e2, arc) that
+        changes the travel by dt changes the objective by press dt + drive . x, to first
+        order (`kneeseat_core.settle.objective`); the travel alone: (1, 0)."""
+        press, drive, _, _ = self._native.first_order(_floats(pose))
+        return press, np.frombuffer(drive, dtype=np.float64)
+
+    def pulls(self, pose: Pose) -> tuple[float, float]:
+        """At `pose`, per unit load: the ligaments' pull along -Δ (dE/ds / F) and the load's
+        along Δ (l . Δ); the body is pressed on while the second exceeds the first."""
+        _, _, pull, line = self._native.first_order(_floats(pose))
+        return pull, line
 
     def pushes(self, poses: Floats) -> tuple[Floats, Floats]:
         """The ligaments' energies (m,) and dE/dt (m, 3) at each of `poses` (m, 4, 4) as the
