@@ -1,6 +1,6 @@
-// The ligaments' energy and its rate under a translation at many poses of one body
-// (_tissue.cpp gives it to kneeseat_core/ligaments.py; settle/_moves.cpp weighs the moves
-// a climb considers with it).
+// The ligaments' energy and its rates under a translation and a rotation at a pose of one
+// body (kneeseat_core/ligaments.py, `Tissue`, defines them with numpy; settle/_moves.cpp
+// weighs every pose a climb considers with this).
 //
 // Each segment's vector is seg_local turned by the pose, plus seg_sign times the pose's
 // translation, plus seg_fixed; a fibre's length is the sum of its segments'; the force law

@@ -281,42 +281,6 @@ class Tissue:
         return float(fibre_energy(self.strains(pose), self.stiffness_n, self.transition,
                                   self.slack_m).sum())
 
-    def loads(self, pose: Pose) -> tuple[float, Floats, Floats]:
-        """Energy (J) and, at every point on the moving body, where it is (k, 3, reference
-        frame) and the gradient of the energy with respect to it (k, 3, N): minus the force
-        the fibres apply there. A rigid motion's energy rate is the sum of gradient . point
-        velocity."""
-        w, d, seg, strain = self._segments(pose)
-        energy = float(fibre_energy(strain, self.stiffness_n, self.transition,
-                                    self.slack_m).sum())
-        tension = fibre_force(strain, self.stiffness_n, self.transition)[self.seg_fibre]
-        pull = d * (tension / np.maximum(seg, 1e-12))[:, None]   # dL/d(b) = unit(b - a)
-        k = len(self.moving_local)
-        return energy, w[:k], self.incidence @ pull
-
-    def rates(self, pose: Pose) -> tuple[float, Floats, Floats]:
-        """Energy (J) at `pose` and its rates under the body's rigid motion: dE/dt (3,, N)
-        for a translation t and dE/dθ (3,, N m) for a small rotation θ about the reference
-        frame's origin (the net force and moment the fibres apply, negated). What `loads`
-        gives summed, computed on the segments directly: a settle asks for it at every pose
-        it weighs."""
-        rot, shift = pose[:3, :3], pose[:3, 3]
-        moving = self.seg_local @ rot.T + self.seg_sign[:, None] * shift
-        d = moving + self.seg_fixed
-        seg = np.sqrt(np.einsum('ij,ij->i', d, d))
-        lengths = seg if self.single else \
-            np.bincount(self.seg_fibre, seg, minlength=len(self.slack_m))
-        force, per_slack = _law(lengths / self.slack_m - 1.0, self.stiffness_n,
-                                self.transition)
-        energy = float(per_slack @ self.slack_m)
-        tension = force if self.single else force[self.seg_fibre]
-        pull = d * (tension / np.maximum(seg, 1e-12))[:, None]
-        # the moment of each segment's pull at its moving end: sum of moving_s x pull_s,
-        # read off the antisymmetric part of moving^T pull
-        m = moving.T @ pull
-        torque = np.array([m[1, 2] - m[2, 1], m[2, 0] - m[0, 2], m[0, 1] - m[1, 0]])
-        return energy, self.seg_sign @ pull, torque
-
 
 # ---- reading a set --------------------------------------------------------------------
 def load_ligaments(path: Path, bodies: Sequence[str]) -> LigamentSet:

@@ -1,7 +1,7 @@
-"""The compiled move planner (`kneeseat_core.settle.planner`) against numpy written here (the
-order the model promises, the poses of the moves and the lift each needs, with the
-ligaments weighed as `Tissue.rates` weighs them), and the compiled best move against
-scipy's linear programming."""
+"""The compiled planner (`kneeseat_core.settle.planner`) against numpy written here and
+finite differences (the order the model promises, the poses of the moves and the lift each
+needs, the ligaments weighed at each, the objective's value and first-order terms, the
+travel's model), and the compiled best move against scipy's linear programming."""
 from __future__ import annotations
 
 import math
@@ -11,7 +11,7 @@ import pytest
 
 import settle_cases as sc
 from kneeseat_core.geometry import pose_from, rotation_about
-from kneeseat_core.ligaments import parse_ligaments, Tissue
+from kneeseat_core.ligaments import fibre_energy, fibre_force, parse_ligaments, Tissue
 from kneeseat_core.meshes import CollisionPair
 from kneeseat_core.settle import _moves, _simplex, SettleParams
 from kneeseat_core.meshes.sweep import Touch
@@ -53,8 +53,22 @@ def search_of(load_toward: tuple[float, float, float] | None = None) -> Search:
     return Search(CollisionPair(var.fixed, var.moving), var.start, params, var.start)
 
 
+def numpy_pushes(tissue: Tissue, pose: np.ndarray) -> tuple[float, np.ndarray]:
+    """The energy and dE/dt at `pose`, written out with numpy: each segment's vector, each
+    fibre's length and tension, the pulls summed over the segments' moving ends."""
+    d = tissue.seg_local @ pose[:3, :3].T + tissue.seg_sign[:, None] * pose[:3, 3] \
+        + tissue.seg_fixed
+    seg = np.linalg.norm(d, axis=1)
+    lengths = np.bincount(tissue.seg_fibre, seg, minlength=len(tissue.slack_m))
+    strain = lengths / tissue.slack_m - 1.0
+    tension = fibre_force(strain, tissue.stiffness_n, tissue.transition)[tissue.seg_fibre]
+    energy = float(fibre_energy(strain, tissue.stiffness_n, tissue.transition,
+                                tissue.slack_m).sum())
+    return energy, tissue.seg_sign @ (d * (tension / seg)[:, None])
+
+
 @pytest.mark.parametrize('paths', [False, True])
-def test_the_ligaments_weigh_each_pose_as_its_own_rates(paths: bool) -> None:
+def test_the_ligaments_weigh_each_pose_as_numpy_and_finite_differences_do(paths: bool) -> None:
     rng = np.random.default_rng(20261202)
     tissue = fibres(rng, paths)
     search = search_of()
@@ -64,16 +78,25 @@ def test_the_ligaments_weigh_each_pose_as_its_own_rates(paths: bool) -> None:
         energies, forces = planner.pushes(poses[:size])
         assert energies.shape == (size,) and forces.shape == (size, 3)
         for pose, energy, force in zip(poses[:size], energies, forces):
-            alone_energy, alone_force, _ = tissue.rates(pose)
+            alone_energy, alone_force = numpy_pushes(tissue, pose)
             assert alone_energy > 0.0
             assert abs(energy - alone_energy) <= 1e-12 * alone_energy
             assert np.max(np.abs(force - alone_force)) <= 1e-12 * np.max(np.abs(alone_force))
+    h = 1e-7
+    for pose in poses[:4]:          # dE/dt is the energy's rate under a translation
+        _, force = planner.pushes(pose[None])
+        for axis in range(3):
+            moved, back = pose.copy(), pose.copy()
+            moved[axis, 3] += h
+            back[axis, 3] -= h
+            numeric = (tissue.energy(moved) - tissue.energy(back)) / (2 * h)
+            assert float(force[0, axis]) == pytest.approx(numeric, rel=1e-5, abs=1e-9)
 
 
 def numpy_worth(search: Search, work: Objective, pose: np.ndarray) -> tuple[float, float]:
     """What `pose` is worth (the load's work less the energy, per unit load) and the rate of
     that under a lift along the push, written out with numpy."""
-    energy, force, _ = work.tissue.rates(pose) if work.tissue else (0.0, np.zeros(3), 0)
+    energy, force = numpy_pushes(work.tissue, pose) if work.tissue else (0.0, np.zeros(3))
     centre = search.centre(pose)
     if work.toward is None:
         value, line = float(centre @ search.push), search.push

@@ -112,8 +112,8 @@ class Planner:
 
     def pushes(self, poses: Floats) -> tuple[Floats, Floats]:
         """The ligaments' energies (m,) and dE/dt (m, 3) at each of `poses` (m, 4, 4) as the
-        lifts weigh them (`Tissue.rates`' energy and force, to rounding; zero without
-        ligaments)."""
+        planner weighs them (`Tissue.energy` and its rate under a translation, to rounding;
+        zero without ligaments)."""
         energies, forces = self._native.pushes(_floats(poses))
         return (np.frombuffer(energies, dtype=np.float64),
                 np.frombuffer(forces, dtype=np.float64).reshape(-1, 3))
