@@ -151,6 +151,25 @@ def test_settling_again_does_not_move() -> None:
     assert arc <= 2.0 * RESOLUTION_M
 
 
+def test_the_pairs_touching_at_rest_seed_a_settle_without_changing_its_answer() -> None:
+    """A settle reports the pairs of triangles in contact at its rest; a settle seeded with
+    them (a chain's next cell) ends at the same pose, bit for bit, as one without."""
+    var = sc.variant('key_pocket', 'rotated')
+    params = SettleParams(push=tuple(float(v) for v in var.push))
+    first = settle(var.fixed, var.moving, var.start, params)
+    assert first.converged and len(first.touching) > 0
+    assert first.touching.shape[1] == 2 and first.touching.dtype == np.int64
+    assert np.all(first.touching[:, 0] < len(var.moving.faces))
+    assert np.all(first.touching[:, 1] < len(var.fixed.faces))
+    start = var.start.copy()
+    start[:3, 3] += 1e-3 * np.array([1.0, 0.0, 0.5])
+    plain = settle(var.fixed, var.moving, start, params)
+    seeded = settle(var.fixed, var.moving, start, params, seeds=first.touching)
+    assert np.array_equal(plain.pose, seeded.pose)
+    assert (plain.iterations, plain.travels) == (seeded.iterations, seeded.travels)
+    assert np.array_equal(plain.touching, seeded.touching)
+
+
 @pytest.mark.parametrize('locked', [None, (0.0, 0.0, 1.0)])
 def test_lateral_moves_slide_across_the_push_and_spin_about_it(
         locked: tuple[float, float, float] | None) -> None:

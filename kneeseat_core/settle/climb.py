@@ -360,14 +360,15 @@ class _Climb:
 
 
 def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
-              tuning: SettleTuning = TUNING) -> SettleResult:
-    """Climb from the free pose `start` (its contact along Δ found first) to a rest pose
-    (module docstring), of the travel, or of the load's work less the energy of the
-    `tissue` acting on the body (`kneeseat_core.settle.objective`)."""
+              tuning: SettleTuning = TUNING, seeds: Ints | None = None) -> SettleResult:
+    """Climb from the free pose `start` (its contact along Δ found first, its search
+    starting from the pairs of triangles `seeds` where given) to a rest pose (module
+    docstring), of the travel, or of the load's work less the energy of the `tissue`
+    acting on the body (`kneeseat_core.settle.objective`)."""
     p = search.params
     assert search.sweep is not None
     climb = _Climb(search, search.sweep, tuning, tissue)
-    first = climb.arrive(start, 0.0, tuning.pool_window_res)
+    first = climb.arrive(start, 0.0, tuning.pool_window_res, seeds=seeds)
     if not isinstance(first, _Place):
         raise NoContactError(search.travel_limit(start))
     climb.settle_in(first)
@@ -391,7 +392,8 @@ def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
     contacts = Contacts(touch.points[near] + (touch.gaps[near] - back)[:, None] * search.push,
                         -touch.normals[near])
     return search.result(pose, status, reason, contacts, proof_checks=climb.proof_checks,
-                         proof_s=climb.proof_s, judged_back_m=back)
+                         proof_s=climb.proof_s, judged_back_m=back,
+                         touching=np.ascontiguousarray(touch.faces[near], dtype=np.int64))
 
 
 def _at_rest(search: Search, climb: _Climb) -> End:

@@ -22,7 +22,7 @@ from kneeseat_core.geometry import unit
 from kneeseat_core.meshes import CollisionPair, SweepPair
 from kneeseat_core.params import SettleParams
 from kneeseat_core.status import AT_REST, Status
-from kneeseat_core.typed import Floats, Pose
+from kneeseat_core.typed import Floats, Ints, Pose
 
 __all__ = ['Contacts', 'SettleResult', 'Search', 'Bracket', 'LOST_CONTACT', 'translated',
            'rotated']
@@ -72,6 +72,9 @@ class SettleResult:
     travels: int = 0            # exact travels measured (default method)
     fcl_checks: int = 0         # python-fcl queries (of `collision_checks`)
     judged_back_m: float = 0.0  # how far python-fcl backed the final pose out
+    # (k, 2) the pairs of triangles (moving face, fixed face) in contact at the end (the
+    # default method's): a neighbouring settle's search starts from them (`settle`'s seeds)
+    touching: Ints = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
 
     @property
     def constrained(self) -> bool:
@@ -317,12 +320,13 @@ class Search:
         return translated(pose, -back * self.push), back
 
     def result(self, pose: Pose, status: int, reason: str, contacts: Contacts,
-               proof_checks: int = 0, proof_s: float = 0.0,
-               judged_back_m: float = 0.0) -> SettleResult:
+               proof_checks: int = 0, proof_s: float = 0.0, judged_back_m: float = 0.0,
+               touching: Ints | None = None) -> SettleResult:
         """Package the end of a settle (`status`: a `Status` code)."""
         travels = self.sweep.queries if self.sweep is not None else 0
         return SettleResult(pose, status in AT_REST, reason,
                             self.iterations, self.pair.checks + travels, contacts,
                             time.perf_counter() - self.started, self.pair.fcl_s,
                             self.backed_out_m, status, proof_checks, proof_s,
-                            travels, self.pair.checks, judged_back_m)
+                            travels, self.pair.checks, judged_back_m,
+                            np.zeros((0, 2), dtype=np.int64) if touching is None else touching)

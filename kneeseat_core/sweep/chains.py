@@ -203,6 +203,8 @@ def run_chain(job: ChainJob) -> ChainResult:
     checks = travels = fcl = 0
     previous, previous_attitude = job.start, job.start_attitude
     before: tuple[Pose, Floats] | None = None
+    # the triangles in contact at the rest just before: the next search starts from them
+    seeds: Ints | None = None
     for i, (attitude, params) in enumerate(zip(job.attitudes, job.params)):
         # the ribs beside changed over this step from the rest just before: only while
         # `previous` is that rest
@@ -212,7 +214,7 @@ def run_chain(job: ChainJob) -> ChainResult:
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:
-            result = settle(fixed, moving, start, params, anchor, tissue)
+            result = settle(fixed, moving, start, params, anchor, tissue, seeds)
         except (NoContactError, SettleError) as err:
             poses[i] = start
             reasons.append(f'failed: {err}')
@@ -241,7 +243,8 @@ def run_chain(job: ChainJob) -> ChainResult:
         if result.converged:   # a failed cell never seeds its neighbours
             before = (previous, previous_attitude) if i > 0 and converged[i - 1] else None
             previous, previous_attitude = result.pose, attitude
+            seeds = result.touching
         else:
-            before = None
+            before = seeds = None
     return ChainResult(job.body, job.cells, poses, converged, iterations, status, checks,
                        tuple(reasons), time.perf_counter() - started, backed, travels, fcl)
