@@ -1,5 +1,5 @@
 // A Python object's buffer checked for the compiled modules (meshes/_sweep.cpp,
-// settle/_simplex.cpp, _tissue.cpp): C-contiguous, of one struct format ("d", "q" or "b")
+// settle/_simplex.cpp, settle/_moves.cpp): C-contiguous, of one struct format ("d", "q" or "b")
 // and item size; otherwise the buffer is not held and `error` is set, naming `what`.
 #ifndef KNEESEAT_BUFFERS_H
 #define KNEESEAT_BUFFERS_H
