@@ -4,7 +4,7 @@ and normals, boolean and contact queries; `sweep`: the travel along a push, exac
 the compiled swept-triangle search)."""
 from .collision import CollisionPair, RigidBody
 from .load import check_mesh, check_mesh_files, load_mesh, load_meshes, UNIT_SCALE, Units
-from .sweep import SweepPair
+from .sweep import sweep_body, SweepPair
 
 __all__ = ['Units', 'UNIT_SCALE', 'load_mesh', 'load_meshes', 'check_mesh', 'check_mesh_files',
-           'RigidBody', 'CollisionPair', 'SweepPair']
+           'RigidBody', 'CollisionPair', 'SweepPair', 'sweep_body']

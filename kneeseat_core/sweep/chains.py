@@ -18,7 +18,9 @@ then from the cold start (the neutral pose backed off one step), and only a conv
 result seeds the next cell.
 
 Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`
-(`kneeseat_core.sweep.scene`). A process that runs chains keeps BLAS to one thread: a
+(`kneeseat_core.sweep.scene`), with their hierarchies for the exact travel: at their first
+chain, or ahead of it (`prepare_worker`, which a sweep asks of a pool's next worker while
+the first settles the centre cell). A process that runs chains keeps BLAS to one thread: a
 settle's linear algebra is on 3-vectors and small matrices, which BLAS threads never speed
 up, and between calls they spin on the cores the other workers need (on the default knee,
 14 % more CPU for the same table).
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache, cached_property
+import os
 import time
 from typing import Iterator, Sequence
 
@@ -36,14 +39,15 @@ from threadpoolctl import threadpool_limits
 from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import carried, pose_from
 from kneeseat_core.ligaments import LigamentSet, Tissue, TissueLayout
+from kneeseat_core.meshes import sweep_body
 from kneeseat_core.params import SettleParams
 from kneeseat_core.settle import settle
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .scene import scene_bodies, SceneSpec
 
-__all__ = ['ChainJob', 'SoftTissue', 'ChainResult', 'run_chain', 'warm_start', 'cold_start',
-           'rest_change', 'mean_change']
+__all__ = ['ChainJob', 'SoftTissue', 'ChainResult', 'run_chain', 'prepare_worker', 'warm_start',
+           'cold_start', 'rest_change', 'mean_change']
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -185,6 +189,19 @@ def _retry_starts(previous: Pose, previous_attitude: Floats, attitude: Floats,
         yield warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
                          params.step_m, before)
     yield cold_start(attitude, params)
+
+
+def prepare_worker(scene: SceneSpec) -> int:
+    """Make this process ready to settle `scene`'s chains (BLAS kept to one thread, the
+    bodies built with their hierarchies for the exact travel) before its first chain comes;
+    returns the process id. A pool spawns its next worker when the first chain is
+    submitted, and the others wait for the centre cell anyway: the next worker does its
+    part of the start meanwhile instead of at its first chain."""
+    _one_blas_thread()
+    fixed, bodies = scene_bodies(scene)
+    for body in (fixed, *bodies):
+        sweep_body(body)
+    return os.getpid()
 
 
 def run_chain(job: ChainJob) -> ChainResult:

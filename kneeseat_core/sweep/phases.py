@@ -35,7 +35,10 @@ value, so varus neighbours agree; independent flexion columns each kept their ow
 and disagreed by up to 2.6 deg (docs/tables.md).
 
 The parent validates every mesh once before the sweep (warnings such as an open cartilage
-sheet appear once per mesh), so workers load quietly.
+sheet appear once per mesh), so workers load quietly. With the centre chains it submits one
+`prepare_worker`: a pool spawns its next worker for it, which builds the scene while the
+first settles the centre cells that every other chain waits for (on the total knee its
+first chain then starts 1.2 s sooner and takes 0.06 s instead of 0.9 s).
 """
 from __future__ import annotations
 
@@ -54,7 +57,8 @@ from kneeseat_core.knee import KneeConfig, neutral_pose
 from kneeseat_core.meshes import check_mesh_files
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
-from .chains import ChainJob, ChainResult, cold_start, mean_change, run_chain, SoftTissue
+from .chains import (ChainJob, ChainResult, cold_start, mean_change, prepare_worker,
+                     run_chain, SoftTissue)
 from .scene import SceneSpec
 
 __all__ = ['SweepResult', 'sweep', 'ribs_beside']
@@ -138,10 +142,15 @@ def sweep(config: KneeConfig, executor: Executor,
             waiters.setdefault(cell, []).append(k)
     ready = [k for k, n in enumerate(missing) if n == 0]
     running: dict[Future[ChainResult], int] = {}
+    preparing: Future[int] | None = None
     while ready or running:
         for k in sorted(ready):           # the chains listed first go first
             running[executor.submit(run_chain, run.job_for(chains[k]))] = k
         ready.clear()
+        if preparing is None:
+            # the next worker of a pool gets ready while the first settles the centre
+            # cells, which every other chain waits for (what it returns is not needed)
+            preparing = executor.submit(prepare_worker, run.scene)
         finished, _ = wait(running, return_when=FIRST_COMPLETED)
         for future in finished:
             del running[future]

@@ -1,0 +1,67 @@
+"""A sweep's workers get ready for their chains: the next worker of a pool builds the scene
+while the first settles the centre cells (`prepare_worker`)."""
+from __future__ import annotations
+
+from concurrent.futures import Future, ProcessPoolExecutor
+import multiprocessing
+import os
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from kneeseat_core.knee import load_config, materialise_default_knee
+from kneeseat_core.meshes import sweep_body
+from kneeseat_core.sweep import InlineExecutor, prepare_worker, scene_bodies, SceneSpec, sweep
+from kneeseat_core.sweep.scene import scene_builds
+
+GRID = {'flexion_deg': [0, -20, 10], 'varus_deg': [-5, 5, 5]}
+
+
+class Recording(ProcessPoolExecutor):
+    """A process pool (spawned workers) that notes what is submitted to it, in order."""
+
+    def __init__(self) -> None:
+        super().__init__(max_workers=2, mp_context=multiprocessing.get_context('spawn'))
+        self.names: list[str] = []
+        self.prepared: list[Future[Any]] = []
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        self.names.append(fn.__name__)
+        future = super().submit(fn, *args, **kwargs)
+        if fn is prepare_worker:
+            self.prepared.append(future)
+        return future
+
+
+def test_a_sweep_readies_the_next_worker_while_the_centre_cells_settle(tmp_path: Path) -> None:
+    config = load_config(materialise_default_knee(tmp_path), None, {'grid': GRID})
+    with Recording() as pool:
+        result = sweep(config, pool)
+        pid = pool.prepared[0].result(timeout=120)
+    # once, right after the chains that start from nothing (the centre cells), before any
+    # chain that waits for them
+    assert pool.names.count('prepare_worker') == 1
+    first = pool.names.index('prepare_worker')
+    assert first >= 1 and set(pool.names[:first]) == {'run_chain'}
+    assert len(pool.names) > first + 1
+    assert pid != os.getpid()
+    assert result.converged.all()
+    # the same table as in-process, where preparing finds everything built already
+    inline = sweep(config, InlineExecutor())
+    assert np.array_equal(result.position_m, inline.position_m)
+    assert np.array_equal(result.orientation_xyzw, inline.orientation_xyzw)
+
+
+def test_preparing_builds_the_scene_once_per_process(tmp_path: Path) -> None:
+    config = load_config(materialise_default_knee(tmp_path), None, {'grid': GRID})
+    groups = [tuple(str(m) for m in spec.meshes) for spec in (config.reference, *config.bodies)]
+    spec = SceneSpec(groups[0], tuple(groups[1:]), config.units)
+    built = scene_builds()
+    assert prepare_worker(spec) == os.getpid()
+    assert scene_builds() == built + 1
+    fixed, bodies = scene_bodies(spec)
+    kept = [sweep_body(body) for body in (fixed, *bodies)]
+    assert prepare_worker(spec) == os.getpid()
+    assert scene_builds() == built + 1                      # nothing built again
+    assert all(sweep_body(b) is k for b, k in zip((fixed, *bodies), kept))
