@@ -20,7 +20,7 @@ import trimesh
 from kneeseat_core.geometry import pose_from, rotation_about
 from kneeseat_core.meshes import CollisionPair, load_mesh, load_meshes, RigidBody, SweepPair
 from kneeseat_core.meshes import _sweep
-from kneeseat_core.meshes.sweep import facing, sweep_body
+from kneeseat_core.meshes.sweep import facing, PLACE, SHORT, sweep_body, Touch
 import settle_cases as sc
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
@@ -205,15 +205,10 @@ def test_which_faces_take_part() -> None:
     assert set(both[len(box.faces):].tolist()) == {0}
 
 
-def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np.ndarray,
-                seed: int) -> tuple[int, int]:
-    """Probes about a contact pose, as the climb makes them: every pair of triangles within
-    0.3 mm of touching there, and the vertices of its moving triangles, asked at each
-    probe. Where a witness is short of the probe's lift, python-fcl must find the probe
-    lifted by it in collision; the whole search must then find a travel short of the lift
-    too, and where it does not, no witness may say so. A search told to stop short of the
-    lift (`short_of`) must say short exactly where the whole search does, and otherwise
-    give its answer. Returns (refuted probes, probes)."""
+def probing(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np.ndarray,
+            seed: int) -> tuple[CollisionPair, SweepPair, Touch, np.ndarray, np.ndarray]:
+    """A pose 0.1 um short of contact (python-fcl's), its features within 0.3 mm, 24
+    lateral probes about it and a lift each must reach."""
     pair = CollisionPair(fixed, moving)
     free = backed(pair, start, push)
     free[:3, 3] += (fcl_travel(pair, free, push) - 1e-7) * push
@@ -223,6 +218,19 @@ def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np
     centre = free[:3, :3] @ moving.centroid + free[:3, 3]
     probes = np.array(lateral_poses(free, push, centre, seed, 24, 3e-4, 0.5))
     lifts = np.random.default_rng(seed).choice([2.5e-6, 2.5e-5, 1e-4], len(probes))
+    return pair, sweep, touch, probes, lifts
+
+
+def refutations(fixed: RigidBody, moving: RigidBody, push: np.ndarray, start: np.ndarray,
+                seed: int) -> tuple[int, int]:
+    """Probes about a contact pose, as the climb makes them: every pair of triangles within
+    0.3 mm of touching there, and the vertices of its moving triangles, asked at each
+    probe. Where a witness is short of the probe's lift, python-fcl must find the probe
+    lifted by it in collision; the whole search must then find a travel short of the lift
+    too, and where it does not, no witness may say so. A search told to stop short of the
+    lift (`short_of`) must say short exactly where the whole search does, and otherwise
+    give its answer. Returns (refuted probes, probes)."""
+    pair, sweep, touch, probes, lifts = probing(fixed, moving, push, start, seed)
     # every pair a witness of every probe
     pool = (touch.gaps, np.zeros((len(touch.gaps), 3)), touch.faces)
     offsets = np.zeros((len(probes), 3))
@@ -248,6 +256,60 @@ def test_a_refuted_probe_collides_for_python_fcl(name: str) -> None:
     push = var.push / np.linalg.norm(var.push)
     refuted, probes = refutations(var.fixed, var.moving, push, var.start, seed=7)
     assert 0 < refuted <= probes
+
+
+@pytest.mark.parametrize('name', sc.SCENES)
+def test_measuring_finds_the_first_probe_unrefuted_and_not_short(name: str) -> None:
+    """`measure` (the climb's loop over its moves, compiled) against its parts asked in
+    turn: the witnesses (`first_unrefuted`) and a search told to stop short of the lift
+    (`touch`); the same probe, travel and features, and SHORT where every probe fails."""
+    var = sc.variant(name, 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    _, sweep, touch, probes, lifts = probing(var.fixed, var.moving, push, var.start, seed=7)
+    pool = (touch.gaps, np.zeros((len(touch.gaps), 3)), touch.faces)
+    offsets = np.zeros((len(probes), 3))
+    windows = np.full(len(probes), 3e-4)
+    count, standoff, found = len(touch.gaps), 1e-7, 0
+    i = 0
+    while i <= len(probes):
+        j, kind, got = sweep.measure(probes, lifts, lifts, windows, pool, offsets, count,
+                                     standoff, 1e-3, i)
+        k, ref = i, None
+        while k < len(probes):
+            k, _ = sweep.first_unrefuted(probes, lifts, pool, offsets, count, standoff, 1e-3, k)
+            if k >= len(probes):
+                break
+            ref = sweep.touch(probes[k], standoff, 3e-4, short_of=lifts[k])
+            if ref.travel >= lifts[k]:
+                break
+            k += 1
+        assert j == k
+        if j == len(probes):
+            assert kind == SHORT and got is None
+            break
+        assert kind == PLACE and got is not None and ref is not None
+        assert got.travel == ref.travel and np.array_equal(got.gaps, ref.gaps)
+        assert np.array_equal(got.faces, ref.faces)
+        found += 1
+        i = j + 1
+    assert found > 0
+
+
+def test_measure_refuses_bad_input_without_crashing() -> None:
+    var = sc.variant('key_pocket', 'rotated')
+    sweep = SweepPair(var.fixed, var.moving, var.push / np.linalg.norm(var.push))
+    none = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
+    one = var.start[None]
+    for standoff, expected in ((0.0, 0.0), (1e-7, math.inf)):      # a standoff, a depth
+        with pytest.raises(ValueError):
+            sweep.measure(one, np.zeros(1), np.array([expected]), np.ones(1), none,
+                          np.zeros((1, 3)), 0, standoff, 0.0)
+    with pytest.raises(ValueError):
+        sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)), 0,
+                      1e-7, 0.0, seeds=np.array([[0, 10 ** 9]]))
+    index, kind, touch = sweep.measure(one, np.array([-math.inf]), np.zeros(1), np.ones(1),
+                                       none, np.zeros((1, 3)), 0, 1e-7, 0.0)
+    assert (index, kind) == (0, PLACE) and touch is not None and len(touch.gaps) > 0
 
 
 @pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')

@@ -948,10 +948,151 @@ PyObject *first_unrefuted(PyObject *, PyObject *args) {
                          static_cast<Py_ssize_t>(picked.size() * 8));
 }
 
+// How far the moving body at `pose` can travel before no contact can happen any more: the
+// distance between the bodies' bounding spheres' centres plus both radii (`bounds`: the
+// moving body's centre in its frame, the fixed body's, the radii's sum).
+double travel_limit(const double *pose, const double *bounds) {
+    double d2 = 0.0;
+    for (int r = 0; r < 3; ++r) {
+        double c = pose[4 * r] * bounds[0] + pose[4 * r + 1] * bounds[1] + pose[4 * r + 2] * bounds[2] +
+                   pose[4 * r + 3] - bounds[3 + r];
+        d2 += c * c;
+    }
+    return std::sqrt(d2) + bounds[6];
+}
+
+enum Measured { kPlace = 0, kShort = 1, kLost = 2 };
+
+// The pose moved along d to contact (kneeseat_core/settle/climb.py, `_Climb.arrive`): the
+// travel searched from the pose lowered by enough that the lowered pose is free (`expected`
+// the travel expected, negative where the pose may be in collision), lowered four times
+// further while the lowered pose is buried; the features within `window` beyond kept in
+// the sweep. kShort: the travel is below `short_of` (the search stops as soon as a gap
+// says so); kLost: no contact along d, or buried beyond twice the limit.
+Measured arrive(Sweep &s, const double *pose, double expected, double short_of, double window, double standoff,
+                const double *bounds, const int64_t *seeds, Py_ssize_t k, long &queries) {
+    double behind = std::max(0.0, -2.0 * expected) + standoff;
+    const double limit = travel_limit(pose, bounds);
+    s.window = window;
+    s.short_of = short_of;
+    s.place(pose);
+    while (true) {
+        s.behind = behind;
+        s.limit = std::min(limit + behind, 1e300);
+        s.want_features = true;
+        s.run(seeds, k);
+        ++queries;
+        if (!s.buried) break;
+        if (-behind < short_of) return kShort;     // the travel is below -behind
+        behind *= 4.0;
+        if (behind > 2.0 * limit) return kLost;
+    }
+    if (s.best < short_of) return kShort;
+    return std::isfinite(s.best) ? kPlace : kLost;
+}
+
+// measure(fixed_view, moving_view, poses (m, 4, 4), needed (m,), expected (m,), windows (m,),
+// gaps (k,), slopes (k, 3), faces (k, 2), offsets (m, 3), count, standoff, deepest, bounds (7,),
+// start, seeds (c, 2) | None) -> (index, kind, travel, features, queries, pairs): from pose
+// `start` on, the first that none of its witnesses refutes (first_unrefuted; with count 0
+// none is asked) moved along d to contact (arrive: expected[i], short of needed[i], the
+// features within windows[i]); one found short is passed over. kind kPlace: the pose
+// `index` reached its travel, with the features (bytes of Feature); kLost: no contact
+// along d from it; index m: every pose refuted or short. A search starts from the pose's
+// witnesses, or from `seeds` where none are asked. A needed travel of +inf (or NaN) is
+// passed over.
+PyObject *measure(PyObject *, PyObject *args) {
+    PyObject *fo, *mo, *po, *no, *eo, *wo, *go, *so, *qo, *oo, *bo, *co;
+    Py_ssize_t count, start;
+    double standoff, deepest;
+    Sweep s;
+    if (!PyArg_ParseTuple(args, "O!O!OOOOOOOOnddOnO", &ViewType, &fo, &ViewType, &mo, &po, &no, &eo, &wo, &go,
+                          &so, &qo, &oo, &count, &standoff, &deepest, &bo, &start, &co))
+        return nullptr;
+    if (!take_views(fo, mo, s)) return nullptr;
+    Py_buffer bufs[10];
+    int held = 0;
+    bool ok = get_buffer(po, &bufs[0], "d", 8, "poses") && ++held;
+    Py_ssize_t m = ok ? bufs[0].len / 128 : 0;
+    if (ok && bufs[0].len != 128 * m) ok = false;
+    ok = ok && get_sized(no, bufs[1], "d", m, "needed") && ++held;
+    ok = ok && get_sized(eo, bufs[2], "d", m, "expected") && ++held;
+    ok = ok && get_sized(wo, bufs[3], "d", m, "windows") && ++held;
+    ok = ok && get_buffer(go, &bufs[4], "d", 8, "gaps") && ++held;
+    Py_ssize_t k = ok ? bufs[4].len / 8 : 0;
+    ok = ok && get_sized(so, bufs[5], "d", 3 * k, "slopes") && ++held;
+    ok = ok && get_sized(qo, bufs[6], "q", 2 * k, "faces") && ++held;
+    ok = ok && get_sized(oo, bufs[7], "d", 3 * m, "offsets") && ++held;
+    ok = ok && get_sized(bo, bufs[8], "d", 7, "bounds") && ++held;
+    Py_ssize_t c = 0;
+    const int64_t *seeds = nullptr;
+    if (ok && co != Py_None) {
+        ok = get_buffer(co, &bufs[9], "q", 8, "seeds") && ++held;
+        c = ok ? bufs[9].len / 16 : 0;
+        seeds = ok ? static_cast<const int64_t *>(bufs[9].buf) : nullptr;
+        ok = ok && bufs[9].len == 16 * c && faces_of(s, seeds, c);
+    }
+    const int64_t *faces = ok ? static_cast<const int64_t *>(bufs[6].buf) : nullptr;
+    ok = ok && faces_of(s, faces, k);
+    const double *windows = ok ? static_cast<const double *>(bufs[3].buf) : nullptr;
+    for (Py_ssize_t i = 0; ok && i < m; ++i) ok = windows[i] >= 0.0;
+    const double *expected_ = ok ? static_cast<const double *>(bufs[2].buf) : nullptr;
+    for (Py_ssize_t i = 0; ok && i < m; ++i) ok = std::isfinite(expected_[i]);
+    if (ok && (!(standoff > 0.0) || !std::isfinite(standoff) || !(deepest >= 0.0) || count < 0 || start < 0))
+        ok = false;
+    if (!ok) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "measure: poses (m, 4, 4), needed, finite expected and windows "
+                                              "(m,), gaps (k,), slopes (k, 3), faces (k, 2) and seeds (c, 2) of "
+                                              "face indices, offsets (m, 3), bounds (7,); standoff positive; "
+                                              "windows, count, deepest and start not negative");
+        for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
+        return nullptr;
+    }
+    const double *p = static_cast<const double *>(bufs[0].buf), *needed = static_cast<const double *>(bufs[1].buf),
+                 *expected = static_cast<const double *>(bufs[2].buf), *gaps = static_cast<const double *>(bufs[4].buf),
+                 *slopes = static_cast<const double *>(bufs[5].buf), *offsets = static_cast<const double *>(bufs[7].buf),
+                 *bounds = static_cast<const double *>(bufs[8].buf);
+    std::vector<std::pair<double, int32_t>> ranked;
+    std::vector<int64_t> picked;
+    std::vector<int32_t> vertices, stack;
+    long queries = 0;
+    Measured kind = kShort;
+    Py_ssize_t i = start;
+    for (; i < m; ++i) {
+        if (std::isnan(needed[i]) || needed[i] == kInf) continue;
+        const int64_t *from = seeds;
+        Py_ssize_t from_count = c;
+        if (count > 0) {
+            s.place(p + 16 * i);
+            if (witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], standoff, deepest,
+                              ranked, picked, vertices, stack))
+                continue;
+            from = picked.data();
+            from_count = static_cast<Py_ssize_t>(picked.size() / 2);
+        }
+        kind = arrive(s, p + 16 * i, expected[i], needed[i], windows[i], standoff, bounds, from, from_count, queries);
+        if (kind != kShort) break;
+    }
+    for (int j = 0; j < held; ++j) PyBuffer_Release(&bufs[j]);
+    std::vector<Feature> kept;
+    if (i < m && kind == kPlace)
+        for (const Feature &f : s.features)
+            if (f.gap <= s.best + s.window) kept.push_back(f);
+    static const char nothing = 0;
+    return Py_BuildValue("(nidy#ll)", std::min(i, m), static_cast<int>(i < m ? kind : kShort),
+                         i < m && kind == kPlace ? s.best : -kInf,
+                         kept.empty() ? &nothing : reinterpret_cast<const char *>(kept.data()),
+                         static_cast<Py_ssize_t>(kept.size() * sizeof(Feature)), queries, s.pairs);
+}
+
 PyMethodDef module_methods[] = {
     {"first_unrefuted", first_unrefuted, METH_VARARGS,
      "first_unrefuted(fixed_view, moving_view, poses, needed, gaps, slopes, faces, offsets, count, behind, "
      "deepest, start) -> (index, witnesses)"},
+    {"measure", measure, METH_VARARGS,
+     "measure(fixed_view, moving_view, poses, needed, expected, windows, gaps, slopes, faces, offsets, count, "
+     "standoff, deepest, bounds, start, seeds) -> (index, kind, travel, features, queries, pairs)"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

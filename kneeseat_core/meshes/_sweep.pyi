@@ -16,3 +16,7 @@ def contacts(fixed: View, moving: View, pose: Any, behind: float, window: float,
 def first_unrefuted(fixed: View, moving: View, poses: Any, needed: Any, gaps: Any, slopes: Any,
                     faces: Any, offsets: Any, count: int, behind: float, deepest: float,
                     start: int) -> tuple[int, bytes]: ...
+def measure(fixed: View, moving: View, poses: Any, needed: Any, expected: Any, windows: Any,
+            gaps: Any, slopes: Any, faces: Any, offsets: Any, count: int, standoff: float,
+            deepest: float, bounds: Any, start: int, seeds: Any
+            ) -> tuple[int, int, float, bytes, int, int]: ...

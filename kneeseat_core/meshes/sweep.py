@@ -35,7 +35,7 @@ from kneeseat_core.typed import Floats, Ints, Pose
 from . import _sweep
 from .collision import RigidBody
 
-__all__ = ['SweepBody', 'SweepPair', 'Touch', 'sweep_body', 'facing']
+__all__ = ['SweepBody', 'SweepPair', 'Touch', 'sweep_body', 'facing', 'PLACE', 'SHORT', 'LOST']
 
 # A view of a body is kept per direction, the direction rounded to this (rad): the moving
 # body's direction in its own frame stays put while it spins about Δ, up to rounding. The
@@ -45,6 +45,10 @@ __all__ = ['SweepBody', 'SweepPair', 'Touch', 'sweep_body', 'facing']
 # climb can turn on those).
 _SAME_DIRECTION = 1e-12
 _VIEWS_KEPT = 8
+
+# What `SweepPair.measure` found: a pose that reached its travel, every pose short (or
+# refuted), or a pose with no contact along the push.
+PLACE, SHORT, LOST = 0, 1, 2
 
 # The layout of one feature from `_sweep.contacts` (a C struct: gap, normal, point, kind,
 # moving face, fixed face).
@@ -165,11 +169,17 @@ class SweepPair:
     _fixed: SweepBody = field(init=False, repr=False)
     _moving: SweepBody = field(init=False, repr=False)
     _fixed_view: _sweep.View = field(init=False, repr=False)
+    _bounds: Floats = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self._fixed = sweep_body(self.fixed)
         self._moving = sweep_body(self.moving)
         self._fixed_view = self._fixed.view(self.push, -1)
+        # how far a pose can travel before no contact can happen (the engine's
+        # `travel_limit`): the moving body's bounding centre in its frame, the fixed
+        # body's, the sum of their radii
+        self._bounds = np.concatenate([self.moving.bound_centre, self.fixed.bound_centre,
+                                       [self.fixed.bound_radius + self.moving.bound_radius]])
 
     def _moving_view(self, pose: Pose) -> _sweep.View:
         return self._moving.view(pose[:3, :3].T @ self.push, 1)
@@ -210,6 +220,42 @@ class SweepPair:
         return Touch(travel, bool(buried), f['gap'].copy(), f['normal'].copy(),
                      f['point'].copy(), f['room'].copy(), f['kind'].copy(),
                      np.column_stack([f['moving_face'], f['fixed_face']]))
+
+    def measure(self, poses: Floats, needed: Floats, expected: Floats, windows: Floats,
+                pool: tuple[Floats, Floats, Ints], offsets: Floats, count: int, standoff: float,
+                deepest: float, start: int = 0, seeds: Ints | None = None
+                ) -> tuple[int, int, Touch | None]:
+        """From `start` on, the first of `poses` (m, 4, 4) that none of its witnesses
+        refutes (`first_unrefuted`, with `count` witnesses and `standoff` the depth below a
+        pose a pair is not counted at; none asked with `count` 0) and whose search does not
+        find it short of `needed` (m,): its index, `PLACE` and the travel from it with the
+        features within `windows` (m,) beyond (the pose lowered first by twice the travel
+        `expected` (m,) where that is negative, plus the standoff, and four times further
+        while the lowered pose is buried); or its index and `LOST` where no contact lies
+        along Δ from it; or (m, SHORT, None) where every pose is refuted or short. A needed
+        travel of +inf is passed over; -inf stops no search. A search starts from the pose's
+        witnesses, or from `seeds` where none are asked."""
+        poses = np.ascontiguousarray(poses, dtype=np.float64)
+        gaps, slopes, faces = pool
+        index, kind, travel, raw, queries, pairs = _sweep.measure(
+            self._fixed_view, self._moving_view(poses[0]), poses,
+            np.ascontiguousarray(needed, dtype=np.float64),
+            np.ascontiguousarray(expected, dtype=np.float64),
+            np.ascontiguousarray(windows, dtype=np.float64),
+            np.ascontiguousarray(gaps, dtype=np.float64),
+            np.ascontiguousarray(slopes, dtype=np.float64),
+            np.ascontiguousarray(faces, dtype=np.int64),
+            np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
+            float(deepest), self._bounds, int(start),
+            None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64))
+        self.queries += queries
+        self.pairs += pairs
+        if kind != PLACE:
+            return index, kind, None
+        f = np.frombuffer(raw, dtype=_FEATURE)
+        return index, kind, Touch(travel, False, f['gap'].copy(), f['normal'].copy(),
+                                  f['point'].copy(), f['room'].copy(), f['kind'].copy(),
+                                  np.column_stack([f['moving_face'], f['fixed_face']]))
 
     def first_unrefuted(self, poses: Floats, needed: Floats, pool: tuple[Floats, Floats, Ints],
                         offsets: Floats, count: int, behind: float, deepest: float,

@@ -41,7 +41,7 @@ import numpy as np
 
 from kneeseat_core.errors import NoContactError
 from kneeseat_core.ligaments import Tissue
-from kneeseat_core.meshes.sweep import SweepPair, Touch
+from kneeseat_core.meshes.sweep import SHORT, SweepPair, Touch
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Floats, Ints, Pose
 from .model import best_move, Model, STEEPEST
@@ -80,6 +80,8 @@ class _Short:
 
 
 _SHORT = _Short()
+# no pool: a single pose is measured without witnesses
+_NO_POOL = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -117,41 +119,37 @@ class _Climb:
 
     # ---- measuring -------------------------------------------------------------------
     def arrive(self, target: Pose, expected: float = 0.0, window_res: float | None = None,
-               short_of: float = -math.inf, seeds: Ints | None = None,
-               state: Floats | None = None) -> _Place | _Short | None:
-        """The lateral pose `target` moved along Δ to contact: the travel measured exactly
-        from it lowered by enough that the lowered pose is free (`expected`: the travel
-        expected there, negative where `target` may be in collision), with the features
-        within `window_res` resolutions (default: the tuning's window); None: no contact
-        along Δ (the body slid off the fixed body); `_SHORT`: the travel is less than
-        `short_of` (the search stops as soon as a gap says so). `seeds`: pairs of
-        triangles likely to close first there (`SweepPair.touch`); `state`: the lateral
-        state of `target` where the caller knows it (a move's own: no pose to read it from)."""
-        s, sweep = self.search, self.sweep
-        window = (self.tuning.window_res if window_res is None else window_res) \
-            * s.params.resolution_m
-        behind = max(0.0, -2.0 * expected) + self.standoff
-        limit = s.travel_limit(target)
-        while True:
-            touch = sweep.touch(target, behind, window, limit + behind, short_of, seeds)
-            if not touch.buried:
-                break
-            if -behind < short_of:      # the travel is below -behind
-                return _SHORT
-            behind *= 4.0
-            if behind > 2.0 * limit:
-                return None
-        if touch.travel < short_of:
+               short_of: float = -math.inf, seeds: Ints | None = None) -> _Place | _Short | None:
+        """The lateral pose `target` moved along Δ to contact (`SweepPair.measure`: the
+        travel measured exactly from it lowered by enough that the lowered pose is free,
+        `expected` the travel expected there, negative where `target` may be in collision),
+        with the features within `window_res` resolutions (default: the tuning's window);
+        None: no contact along Δ (the body slid off the fixed body); `_SHORT`: the travel is
+        less than `short_of` (the search stops as soon as a gap says so). `seeds`: pairs of
+        triangles likely to close first there (they change how fast the answer comes,
+        never the answer)."""
+        t = self.tuning
+        window = t.window_res if window_res is None else window_res
+        _, kind, touch = self.sweep.measure(
+            target[None], np.array([short_of]), np.array([expected]),
+            np.array([window * self.search.params.resolution_m]), _NO_POOL, np.zeros((1, 3)), 0,
+            self.standoff, 0.0, 0, seeds)
+        if kind == SHORT:
             return _SHORT
-        if not math.isfinite(touch.travel):
+        if touch is None:
             return None
+        return self._place(target, touch, window >= t.pool_window_res, self.state_of(target))
+
+    def _place(self, target: Pose, touch: Touch, wide: bool, state: Floats) -> _Place:
+        """The place `target` reaches along Δ, its travel and features measured (`touch`):
+        the standoff short of touching, its features' gaps from there (`state`: its lateral
+        state, the target's; `wide`: its features gathered within the pool's window)."""
+        s = self.search
         rise = touch.travel - self.standoff
         pose = translated(target, rise * s.push)
         shifted = Touch(touch.travel, False, touch.gaps - rise, touch.normals,
                         touch.points + rise * s.push, touch.rooms, touch.kinds, touch.faces)
-        return _Place(pose, self.planner.value(pose),
-                      self.state_of(pose) if state is None else state, shifted,
-                      window_res is not None and window_res >= self.tuning.pool_window_res)
+        return _Place(pose, self.planner.value(pose), state, shifted, wide)
 
     def state_of(self, pose: Pose) -> Floats:
         """(3,) the lateral state of `pose`: slides along e1, e2 and the arc of its spin,
@@ -313,9 +311,10 @@ class _Climb:
         move from above). A move is refuted without a search where a contact closes short
         of the travel it needs: a pair of triangles from the witnesses' pool that the pool
         says close first after it, or a vertex of their moving triangles onto whatever face
-        of the fixed body it meets there (`SweepPair.first_unrefuted`: the moves in turn, up
-        to the first that none refutes). That one is measured, its search stopping as soon
-        as a contact short of the travel the move needs is found, and so on."""
+        of the fixed body it meets there. The first that none refutes is measured, its
+        search stopping as soon as a contact short of the travel the move needs is found,
+        and so on, in one compiled call up to the first that reaches its travel
+        (`SweepPair.measure`); that one gains or the next call goes on from it."""
         assert self.here is not None and self.pool is not None
         s, t, sweep = self.search, self.tuning, self.sweep
         if len(moves) == 0:
@@ -337,24 +336,27 @@ class _Climb:
         # a vertex that far above a face is through it
         deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
         offsets = moves + (here.state - self.pool.state)
+        # a place beyond the pool's reach becomes the pool when the climb moves to it, so it
+        # is measured with the pool's window
+        reach = t.pool_reach_moves * self.finest
+        wide = np.max(np.abs(offsets), axis=1) > reach
+        windows = np.where(wide, t.pool_window_res, t.window_res) * s.params.resolution_m
         i = 0
         while True:
-            # the next move open that its witnesses (the pairs the pool says close first
-            # there) do not refute
-            i, seeds = sweep.first_unrefuted(targets, needed, (pool.gaps, pool.slopes, pool.faces),
-                                             offsets, t.witnesses, self.standoff, deepest, i)
+            # the next move that its witnesses (the pairs the pool says close first there)
+            # do not refute, measured from them (none short of the travel needed, they bound
+            # it from above), its search stopping once a contact short of it is found; a
+            # move found short is passed over
+            i, kind, touch = sweep.measure(targets, needed, needed, windows,
+                                           (pool.gaps, pool.slopes, pool.faces), offsets,
+                                           t.witnesses, self.standoff, deepest, i)
             if i >= len(moves):
                 return None
-            # a lateral move adds itself to the state (a lift along Δ changes none of it)
-            state = here.state + moves[i]
-            window = t.pool_window_res if self._beyond_pool(state) else None
-            # the witnesses, none short of the travel needed, bound it from above: the
-            # search starts from them
-            place = self.arrive(targets[i], float(needed[i]), window, float(needed[i]), seeds,
-                                state)
-            if place is None:
+            if touch is None:
                 return (Status.LOST, LOST_CONTACT)
-            if isinstance(place, _Place) and place.value - here.value >= gain:
+            # a lateral move adds itself to the state (a lift along Δ changes none of it)
+            place = self._place(targets[i], touch, bool(wide[i]), here.state + moves[i])
+            if place.value - here.value >= gain:
                 return place
             i += 1
 

@@ -15,7 +15,7 @@ triangle, the crossing on the same edges); the climb uses the model to order its
 propose the move that climbs where several contacts hold the body at once (`best_move`: the
 objective press s(x) + drive . x is then best raised along a combination of slide and spin
 that keeps every contact, a linear program in (x, s)) and to name the pairs of triangles
-likely to stop a move (its witnesses, `SweepPair.first_unrefuted`), never to decide a gain
+likely to stop a move (its witnesses, `SweepPair.measure`), never to decide a gain
 (`kneeseat_core.settle.climb`). The linear program is solved by a small simplex written by
 hand (`_simplex.cpp`, compiled with the package): the climb asks it at every fine step, and
 a general solver's setup alone costs more than that (scipy's linprog about 3 ms), and the
