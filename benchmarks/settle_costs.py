@@ -3,14 +3,14 @@
 Run: `python benchmarks/settle_costs.py [--knees tka,natural,default]
 [--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1]` (with `=`: a grid starts with a
 minus). Builds a slice of each knee's table in this process (`kneeseat build --workers
-1`) and times every call into the compiled parts a settle
-uses: the moves measured (`_sweep.measure`: the witnesses asked and the exact searches of
-the moves they do not refute, in one call), python-fcl (`fcl.collide`), the moves' plans
-(`Planner.plan`: their order, poses and lifts with the ligaments weighed, its thin wrapper
-included) and the linear program (`_simplex.best_move`, built and solved). What is left of the settles' time
-is Python and numpy around them. Prints, per knee, milliseconds a settle for each part, its calls a
-settle and its share. Timing a call costs about a microsecond, so the Python share is
-overstated by about that much per call (the calls a settle are printed).
+1`) and times every call into the compiled parts a settle uses: the moves measured
+(`_sweep.measure`: the witnesses asked and the exact searches of the moves they do not
+refute, in one call), python-fcl (`fcl.collide`), the moves' plans (`Planner.plan`: their
+order, poses and lifts with the ligaments weighed, its thin wrapper included) and the
+linear program (`_simplex.best_move`, built and solved). What is left of the settles' time
+is Python and numpy around them. Prints, per knee, milliseconds a settle for each part, its
+calls a settle and its share. Timing a call costs about a microsecond, so the Python share
+is overstated by about that much per call (the calls a settle are printed).
 """
 from __future__ import annotations
 
