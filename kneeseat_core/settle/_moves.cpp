@@ -1,12 +1,12 @@
-// The moves a climb tries, planned at once (kneeseat_core/settle/planner.py is its Python
-// face; kneeseat_core/settle/climb.py, `_Climb._try`, asks it at every step): the order
-// the near-active features' first-order model promises, each move's pose (a slide across
-// the push and a spin about the axis through the body's centroid parallel to it), and the
-// travel along the push each must reach to gain (one Newton step of the lift, the
-// ligaments weighed at every pose: _tissue.h). A step considers up to 27 moves of a few
-// arrays each; numpy's calls on arrays that small cost several times their arithmetic.
-// What a pose at contact is worth (the objective itself) is computed here too, from the
-// same terms.
+// The climb's arithmetic around the exact travel (kneeseat_core/settle/planner.py is its
+// Python face; kneeseat_core/settle/climb.py asks it at every step and pose): the moves a
+// step tries, planned at once (the order the near-active features' first-order model
+// promises, each move's pose - a slide across the push and a spin about the axis through
+// the body's centroid parallel to it - and the travel along the push each must reach to
+// gain: one Newton step of the lift), what a pose at contact is worth, the objective's
+// first-order terms, and the travel's first-order model about a pose from its features;
+// the ligaments weighed at every pose (_tissue.h). A step considers up to 27 moves of a
+// few arrays each; numpy's calls on arrays that small cost several times their arithmetic.
 //
 // The pose of a move x = (slide e1, slide e2, arc): R = I + sin(a) K + (1 - cos(a)) K^2
 // with K the push's cross-product matrix and a = arc / arm, the body turned by R about its

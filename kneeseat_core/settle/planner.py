@@ -1,4 +1,5 @@
-"""The moves a climb tries, planned at once (compiled, `_moves.cpp`).
+"""The climb's arithmetic around the exact travel, compiled (`_moves.cpp`): the moves it
+tries, what a pose is worth, the objective's first-order terms, the travel's model.
 
 At every step the climb (`kneeseat_core.settle.climb`) considers up to 27 lateral moves:
 it orders them by what the near-active features promise (`kneeseat_core.settle.model`),
@@ -45,7 +46,6 @@ class Planner:
 
     def __init__(self, search: Search, objective: Objective, arm: float,
                  standoff: float) -> None:
-        self.objective = objective
         toward = None if objective.toward is None else _floats(objective.toward)
         self._native = _moves.Planner(
             _floats(search.push), _floats(search.e1), _floats(search.e2), _floats(search.free),
