@@ -228,13 +228,11 @@ class Tissue:
     slack_m: Floats              # (f,)
     stiffness_n: Floats          # (f,)
     transition: Floats           # (f,)
-    incidence: Floats            # (k, s) +1 / -1 where a segment ends / starts on point j
     # each segment's vector b - a is seg_local turned by the pose, plus seg_sign times the
     # pose's translation, plus seg_fixed (the ends fixed in the reference frame)
     seg_local: Floats            # (s, 3) m, body frame
     seg_sign: Floats             # (s,) moving ends: +1 end, -1 start, 0 both or none
     seg_fixed: Floats            # (s, 3) m, reference frame
-    single: bool                 # every fibre is one segment (no sums over segments)
 
     @classmethod
     def of(cls, names: tuple[str, ...], bundles: tuple[str, ...], local: Floats,
@@ -246,6 +244,7 @@ class Tissue:
         where[order] = np.arange(len(order))
         a, b = where[seg_a], where[seg_b]
         k = int(moving.sum())
+        # (k, s) +1 / -1 where a segment ends / starts on moving point j
         incidence = np.zeros((k, len(a)))
         incidence[b[b < k], np.flatnonzero(b < k)] += 1.0
         incidence[a[a < k], np.flatnonzero(a < k)] -= 1.0
@@ -253,9 +252,8 @@ class Tissue:
         fixed_end = np.where((b >= k)[:, None], placed[b], 0.0) \
             - np.where((a >= k)[:, None], placed[a], 0.0)
         return cls(names, bundles, placed[:k], placed[k:], a, b, seg_fibre,
-                   slack_m, stiffness_n, transition, incidence,
-                   incidence.T @ placed[:k], incidence.sum(axis=0), fixed_end,
-                   bool(np.array_equal(seg_fibre, np.arange(len(slack_m)))))
+                   slack_m, stiffness_n, transition, incidence.T @ placed[:k],
+                   incidence.sum(axis=0), fixed_end)
 
     def world(self, pose: Pose) -> Floats:
         """(n, 3) every point in the reference frame with the body at `pose` (the moving

@@ -37,7 +37,8 @@ def fibres(rng: np.random.Generator, paths: bool) -> Tissue:
                    'points': [{'body': b, 'position': point()}
                               for b in ('femur', 'tibia', 'tibia')]} for i in range(9)]
     tissue = parse_ligaments(items, 'test', BODIES).tissue('tibia', {'femur': np.eye(4)})
-    assert tissue is not None and tissue.single == (not paths)
+    assert tissue is not None
+    assert (len(tissue.seg_fibre) > len(tissue.slack_m)) == paths   # several segments a fibre
     return tissue
 
 
