@@ -196,6 +196,22 @@ def test_not_watertight_is_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFi
     assert str(path) in warnings[0].getMessage()
 
 
+def test_a_quiet_load_leaves_the_warning_to_the_check(tmp_path: Path,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """A worker's quiet load (with one worker it runs before the sweep's check) does not
+    use up the warning: the check still gives it, once."""
+    box = box_m()
+    path = tmp_path / 'open_first_quiet.stl'
+    trimesh.Trimesh(box.vertices, box.faces[:-1], process=False).export(path)
+    with caplog.at_level(logging.WARNING, logger='kneeseat_core.meshes.load'):
+        load_mesh(path, quiet=True)
+        assert not [r for r in caplog.records if r.levelno == logging.WARNING]
+        load_mesh(path)
+        load_mesh(path)
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and str(path) in warnings[0].getMessage()
+
+
 def test_watertight_mesh_gives_no_warning(tmp_path: Path,
                                           caplog: pytest.LogCaptureFixture) -> None:
     path = tmp_path / 'box.stl'

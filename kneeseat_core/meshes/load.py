@@ -119,8 +119,11 @@ def check_mesh(mesh: trimesh.Trimesh, name: str, units: Units = 'm',
         raise MeshError(f'{name}: {extent:.4g} m across is not a plausible bone or implant '
                         f'size with units={units}; {hint}')
     if not mesh.is_watertight:
-        level = logging.DEBUG if quiet or name in _WARNED_OPEN else logging.WARNING
-        _WARNED_OPEN.add(name)
-        log.log(level, '%s: mesh is not watertight (open sheet or holes); accepted: settling '
-                'works, but deep penetration cannot be told from a hole', name)
+        # a quiet load (a worker's) leaves the warning to the caller's own check
+        warn = not quiet and name not in _WARNED_OPEN
+        if warn:
+            _WARNED_OPEN.add(name)
+        log.log(logging.WARNING if warn else logging.DEBUG, '%s: mesh is not watertight (open '
+                'sheet or holes); accepted: settling works, but deep penetration cannot be told '
+                'from a hole', name)
     return mesh
