@@ -803,7 +803,7 @@ double vertex_gap(Sweep &s, int32_t i, double behind, double best, std::vector<i
 bool get_sized(PyObject *obj, Py_buffer &view, const char *format, Py_ssize_t count, const char *what) {
     if (!get_buffer(obj, &view, format, 8, what)) return false;
     if (view.len == 8 * count) return true;
-    PyErr_Format(PyExc_ValueError, "first_unrefuted: %s has the wrong shape", what);
+    PyErr_Format(PyExc_ValueError, "%s has the wrong shape", what);
     PyBuffer_Release(&view);
     return false;
 }

@@ -216,10 +216,7 @@ class SweepPair:
             None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64))
         self.queries += 1
         self.pairs += pairs
-        f = np.frombuffer(raw, dtype=_FEATURE)
-        return Touch(travel, bool(buried), f['gap'].copy(), f['normal'].copy(),
-                     f['point'].copy(), f['room'].copy(), f['kind'].copy(),
-                     np.column_stack([f['moving_face'], f['fixed_face']]))
+        return _touch(travel, bool(buried), raw)
 
     def measure(self, poses: Floats, needed: Floats, expected: Floats, windows: Floats,
                 pool: tuple[Floats, Floats, Ints], offsets: Floats, count: int, standoff: float,
@@ -252,10 +249,7 @@ class SweepPair:
         self.pairs += pairs
         if kind != PLACE:
             return index, kind, None
-        f = np.frombuffer(raw, dtype=_FEATURE)
-        return index, kind, Touch(travel, False, f['gap'].copy(), f['normal'].copy(),
-                                  f['point'].copy(), f['room'].copy(), f['kind'].copy(),
-                                  np.column_stack([f['moving_face'], f['fixed_face']]))
+        return index, kind, _touch(travel, False, raw)
 
     def first_unrefuted(self, poses: Floats, needed: Floats, pool: tuple[Floats, Floats, Ints],
                         offsets: Floats, count: int, behind: float, deepest: float,
@@ -289,6 +283,14 @@ class SweepPair:
             float(deepest), int(start))
         # the engine sends no witnesses when every pose is refuted
         return index, (np.frombuffer(raw, dtype=np.int64).reshape(-1, 2) if raw else None)
+
+
+def _touch(travel: float, buried: bool, raw: bytes) -> Touch:
+    """The travel and the engine's features (bytes of its `Feature` structs) as a `Touch`."""
+    f = np.frombuffer(raw, dtype=_FEATURE)
+    return Touch(travel, buried, f['gap'].copy(), f['normal'].copy(), f['point'].copy(),
+                 f['room'].copy(), f['kind'].copy(),
+                 np.column_stack([f['moving_face'], f['fixed_face']]))
 
 
 def _finite(limit: float) -> float:

@@ -460,14 +460,14 @@ PyMethodDef planner_methods[] = {
      "pushes(poses) -> (energies, forces): the ligaments at each pose"},
     {nullptr, nullptr, 0, nullptr}};
 
-PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_moves", "The moves a climb tries, planned at once.", -1,
+PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_moves", "The climb's arithmetic around the exact travel.", -1,
                           nullptr};
 
 }  // namespace
 
 PyMODINIT_FUNC PyInit__moves() {
     PlannerType.tp_name = "kneeseat_core.settle._moves.Planner";
-    PlannerType.tp_doc = "Planner(push, e1, e2, free, centroid, arm, standoff, work, load_n, toward, fibres)";
+    PlannerType.tp_doc = "Planner(push, e1, e2, free, centroid, arm, standoff, steepest, work, load_n, toward, fibres)";
     PlannerType.tp_basicsize = sizeof(PyPlanner);
     PlannerType.tp_flags = Py_TPFLAGS_DEFAULT;
     PlannerType.tp_new = PyType_GenericNew;

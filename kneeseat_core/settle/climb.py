@@ -43,7 +43,7 @@ from kneeseat_core.errors import NoContactError
 from kneeseat_core.ligaments import Tissue
 from kneeseat_core.meshes.sweep import SHORT, SweepPair, Touch
 from kneeseat_core.status import Status
-from kneeseat_core.typed import Floats, Ints, Pose
+from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .model import best_move, Model, STEEPEST
 from .objective import Objective, objective_for
 from .planner import Planner
@@ -175,13 +175,13 @@ class _Climb:
     def _pool(self, place: _Place) -> None:
         self.pool = _Witnesses(self.model(place), place.state)
 
-    def _beyond_pool(self, state: Floats) -> bool:
-        """Whether the pool, taken where it was, is too far from the lateral state `state`
-        to name the pairs that close first there: a place there becomes the pool when the
-        climb moves to it, so it is measured with the pool's window."""
-        assert self.pool is not None
+    def _beyond_pool(self, offsets: Floats) -> Bools:
+        """Whether the pool is too far from each lateral state `offsets` (..., 3) away from
+        where it was taken to name the pairs that close first there: a place there becomes
+        the pool when the climb moves to it, so it is measured with the pool's window."""
         reach = self.tuning.pool_reach_moves * self.finest
-        return bool(np.max(np.abs(state - self.pool.state)) > reach)
+        out: Bools = np.max(np.abs(offsets), axis=-1) > reach
+        return out
 
     # ---- the steps -------------------------------------------------------------------
     def step(self) -> End | None | bool:
@@ -245,7 +245,8 @@ class _Climb:
         s = self.search
         self.here = place
         self.failed = set()
-        if self._beyond_pool(place.state):
+        assert self.pool is not None
+        if self._beyond_pool(place.state - self.pool.state):
             wide = place if place.wide else self.arrive(place.pose, 0.0,
                                                         self.tuning.pool_window_res)
             self._pool(wide if isinstance(wide, _Place) else place)
@@ -336,10 +337,7 @@ class _Climb:
         # a vertex that far above a face is through it
         deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
         offsets = moves + (here.state - self.pool.state)
-        # a place beyond the pool's reach becomes the pool when the climb moves to it, so it
-        # is measured with the pool's window
-        reach = t.pool_reach_moves * self.finest
-        wide = np.max(np.abs(offsets), axis=1) > reach
+        wide = self._beyond_pool(offsets)
         windows = np.where(wide, t.pool_window_res, t.window_res) * s.params.resolution_m
         i = 0
         while True:
