@@ -28,7 +28,7 @@ import pytest
 from kneeseat_core.knee import materialise_default_knee
 from kneeseat_core.cli import main
 from kneeseat_core.meshes import load_mesh, RigidBody
-from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_angle
+from kneeseat_core.geometry import matrix_from_quat, pose_from, rotation_about, rotation_angle
 from kneeseat_core.knee import BodySpec, KneeConfig, load_config
 from kneeseat_core.settle import settle
 from kneeseat_core.sweep import warm_start
@@ -330,3 +330,19 @@ def test_every_mid_cell_matches_a_direct_settle(midcells: list[MidCell]) -> None
           + ', '.join(f'{m.lookup_gain_mm:.3f} mm' for m in far))
     assert len(far) <= 0.25 * len(midcells)
     assert all(m.lookup_gain_mm <= 0.1 for m in far)
+
+
+def test_an_attitude_asked_again_is_the_same_turn_and_the_callers_own() -> None:
+    """A config keeps the turns it computed (a sweep asks each cell's several times): asked
+    again, an attitude is the same turn about the knee's axes, and a caller that changes
+    the array it was given changes nothing the config keeps."""
+    config = load_config(materialise_default_knee())
+    tibia, patella = config.bodies
+    f, v = config.flexion_rad[3], config.varus_rad[2]
+    turn = (rotation_about(config.axes.flexion, patella.flexion_fraction * f)
+            @ rotation_about(config.axes.varus, patella.varus_fraction * v))
+    first = config.attitude(patella, f, v)
+    np.testing.assert_array_equal(first, turn)
+    first[:] = 0.0
+    np.testing.assert_array_equal(config.attitude(patella, f, v), turn)
+    assert not np.array_equal(config.attitude(tibia, f, v), turn)

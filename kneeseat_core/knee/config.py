@@ -34,7 +34,7 @@ first of them; `BodySpec.meshes` holds them all.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 import math
 from pathlib import Path
 from typing import Any
@@ -101,6 +101,10 @@ class KneeConfig:
     settle: SettleParams         # push is per body; this one's push is ignored
     source: dict[str, Any]       # the config as read (for the table's metadata)
     ligaments: LigamentSet | None = None   # the soft tissue, if the config names it
+    # turns computed so far, by (flexion fraction, varus fraction, flexion, varus): a sweep
+    # asks each cell's several times (its job, its params, the ribs that learn from it)
+    _turns: dict[tuple[float, float, float, float], Floats] = field(
+        default_factory=dict, init=False, repr=False)
 
     def attitude(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
         """(3, 3) attitude of `body` at a grid cell (module docstring)."""
@@ -108,9 +112,15 @@ class KneeConfig:
 
     def _turn(self, flexion_fraction: float, varus_fraction: float, flexion_rad: float,
               varus_rad: float) -> Floats:
-        """(3, 3) the turn by these fractions of flexion and varus about the knee's axes."""
-        return (rotation_about(self.axes.flexion, flexion_fraction * flexion_rad)
+        """(3, 3) the turn by these fractions of flexion and varus about the knee's axes
+        (a copy of the one kept: the caller may change it)."""
+        key = (flexion_fraction, varus_fraction, flexion_rad, varus_rad)
+        found = self._turns.get(key)
+        if found is None:
+            found = self._turns[key] = (
+                rotation_about(self.axes.flexion, flexion_fraction * flexion_rad)
                 @ rotation_about(self.axes.varus, varus_fraction * varus_rad))
+        return found.copy()
 
     def attitudes(self) -> Floats:
         """(B, F, V, 3, 3) every body's attitude at every grid cell."""
