@@ -175,23 +175,33 @@ class LigamentSet:
             seg_a.extend(range(start, start + count - 1))
             seg_b.extend(range(start + 1, start + count))
             seg_fibre.extend([i] * (count - 1))
-        return TissueLayout(body, fibres, tuple(owners), tuple(points), np.array(seg_a),
-                            np.array(seg_b), np.array(seg_fibre))
+        return TissueLayout(body, tuple(f.name for f in fibres), tuple(f.bundle for f in fibres),
+                            tuple(owners), np.array(points, dtype=np.float64).reshape(-1, 3),
+                            np.array(seg_a), np.array(seg_b), np.array(seg_fibre),
+                            np.array([f.slack_m for f in fibres]),
+                            np.array([f.stiffness_n for f in fibres]),
+                            np.array([f.transition for f in fibres]))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class TissueLayout:
     """The fibres acting on one body, laid out once (`LigamentSet.layout`): each point's
-    body and coordinates there, the segments as point indices and the fibre of each. A
-    sweep places it at every cell of a chain, where only the other bodies' poses change."""
+    body and coordinates there, the segments as point indices and the fibre of each, and
+    the fibres' names and constants. A sweep lays it out once per body and places it at
+    every cell of a chain, where only the other bodies' poses change; its arrays make it
+    small to send to a worker."""
 
     body: str
-    fibres: tuple[Fibre, ...]
+    names: tuple[str, ...]       # (f,)
+    bundles: tuple[str, ...]     # (f,)
     owners: tuple[str, ...]      # (n,) the body each point is fixed on
-    points: tuple[Floats, ...]   # (n,) (3,) m, each in its body's frame
+    points: Floats               # (n, 3) m, each in its body's frame
     seg_a: Ints                  # (s,) first point of each straight segment
     seg_b: Ints                  # (s,) second point
     seg_fibre: Ints              # (s,) the fibre each segment belongs to
+    slack_m: Floats              # (f,)
+    stiffness_n: Floats          # (f,)
+    transition: Floats           # (f,)
 
     def place(self, placed: Mapping[str, Pose]) -> Tissue:
         """The tissue with every body other than the moving one at its pose in `placed`
@@ -199,13 +209,9 @@ class TissueLayout:
         body = self.body
         local = [p if b == body else placed[b][:3, :3] @ p + placed[b][:3, 3]
                  for b, p in zip(self.owners, self.points)]
-        fibres = self.fibres
-        return Tissue.of(tuple(f.name for f in fibres), tuple(f.bundle for f in fibres),
-                         np.array(local), np.array([b == body for b in self.owners]),
-                         self.seg_a, self.seg_b, self.seg_fibre,
-                         np.array([f.slack_m for f in fibres]),
-                         np.array([f.stiffness_n for f in fibres]),
-                         np.array([f.transition for f in fibres]))
+        return Tissue.of(self.names, self.bundles, np.array(local),
+                         np.array([b == body for b in self.owners]), self.seg_a, self.seg_b,
+                         self.seg_fibre, self.slack_m, self.stiffness_n, self.transition)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

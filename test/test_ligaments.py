@@ -87,7 +87,7 @@ def test_a_chain_places_the_fibres_where_the_bodies_they_reach_rest_at_each_cell
     ligaments = three_fibres()
     tibia_rests = np.stack([pose_from(rotation_about(np.array([0.0, 0.0, 1.0]), 0.1 * i),
                                       np.array([0.002 * i, -0.001, 0.0])) for i in range(3)])
-    patella = SoftTissue(ligaments, 'patella', 'femur', ('tibia',), tibia_rests[:, None])
+    patella = SoftTissue.of(ligaments, 'patella', 'femur', ('tibia',), tibia_rests[:, None])
     pose = pose_from(rotation_about(np.array([1.0, 0.0, 0.0]), 0.05), np.array([0.0, 0.01, 0.0]))
     for i, tibia in enumerate(tibia_rests):
         # each fibre's length from its definition: the points placed by hand
@@ -98,11 +98,11 @@ def test_a_chain_places_the_fibres_where_the_bodies_they_reach_rest_at_each_cell
         assert tissue is not None and tissue.names == ('pt', 'mpfl')
         assert tissue.strains(pose) == pytest.approx([pt / 0.05 - 1, mpfl / 0.04 - 1], abs=1e-12)
     # held by the reference alone, the tibia's fibres are the same at every cell
-    tibia = SoftTissue(ligaments, 'tibia', 'femur', (), np.zeros((3, 0, 4, 4)))
+    tibia = SoftTissue.of(ligaments, 'tibia', 'femur', (), np.zeros((3, 0, 4, 4)))
     assert tibia.at(0) is tibia.at(2) is not None
     acl = np.linalg.norm(pose[:3, :3] @ [0, -0.03, 0] + pose[:3, 3])
     assert tibia.at(1).strains(pose) == pytest.approx([acl / 0.03 - 1], abs=1e-12)
-    alone = SoftTissue(ligaments, 'femur', 'femur', (), np.zeros((3, 0, 4, 4)))
+    alone = SoftTissue.of(ligaments, 'femur', 'femur', (), np.zeros((3, 0, 4, 4)))
     assert alone.at(0) is None
 
 

@@ -82,34 +82,37 @@ class ChainJob:
 
 @dataclass(frozen=True, eq=False)
 class SoftTissue:
-    """What a chain needs to place the ligaments of its body at each of its cells: the set,
-    the body's name, and where the bodies its fibres pull from rest at each cell (the
-    reference at identity, the other bodies as they were settled there)."""
+    """What a chain needs to place the ligaments of its body at each of its cells: the
+    fibres acting on it laid out (`LigamentSet.layout`; None: none acts), and where the
+    bodies they pull from rest at each cell (the reference at identity, the other bodies as
+    they were settled there)."""
 
-    ligaments: LigamentSet
-    body: str
+    layout: TissueLayout | None
     reference: str
     placed: tuple[str, ...]                 # the settled bodies its fibres reach
     placed_poses: Floats                    # (n, len(placed), 4, 4) their poses per cell
 
+    @classmethod
+    def of(cls, ligaments: LigamentSet, body: str, reference: str, placed: tuple[str, ...],
+           placed_poses: Floats) -> SoftTissue:
+        """The fibres of `ligaments` acting on `body` with the reference and the bodies
+        `placed` (at `placed_poses`, per cell) where they rest."""
+        return cls(ligaments.layout(body, (reference, *placed)), reference, placed,
+                   placed_poses)
+
     def at(self, i: int) -> Tissue | None:
         """The tissue at the chain's i-th cell."""
-        if self._layout is None or not self.placed:
+        if self.layout is None or not self.placed:
             return self._still
         poses = {self.reference: np.eye(4)}
         poses.update(zip(self.placed, self.placed_poses[i]))
-        return self._layout.place(poses)
-
-    @cached_property
-    def _layout(self) -> TissueLayout | None:
-        """The fibres laid out once for the chain (at its first cell, in the worker)."""
-        return self.ligaments.layout(self.body, (self.reference, *self.placed))
+        return self.layout.place(poses)
 
     @cached_property
     def _still(self) -> Tissue | None:
         """Where only the reference holds the fibres (`at` asks only then), the tissue
         itself: the same at every cell, built once."""
-        return None if self._layout is None else self._layout.place({self.reference: np.eye(4)})
+        return None if self.layout is None else self.layout.place({self.reference: np.eye(4)})
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -202,6 +202,11 @@ class _Sweep:
                                  for spec in config.bodies]
         self.anchors = np.array([neutral_pose(a0) for a0 in self.centre_attitudes])
         self.depends = [config.depends_on(b) for b in config.bodies]
+        # the fibres acting on each body, laid out once (the patent's method has none)
+        ligaments = config.ligaments
+        self.layouts = [None if ligaments is None or config.settle.method == 'patent' else
+                        ligaments.layout(spec.name, config.placed_before(spec))
+                        for spec in config.bodies]
         # settled once per flexion value and copied across varus: a body that ignores varus
         # and whose ligaments pull from no body that feels it
         self.varus_free: list[bool] = []
@@ -225,15 +230,13 @@ class _Sweep:
         """The ligaments acting on `body` along a chain, each cell's other bodies where they
         were settled there; None without ligaments (or with the patent's method, which has
         no soft tissue)."""
-        config, spec = self.config, self.config.bodies[body]
-        ligaments = config.ligaments
-        if ligaments is None or config.settle.method == 'patent' or \
-                not ligaments.acting_on(spec.name, config.placed_before(spec)):
+        layout = self.layouts[body]
+        if layout is None:
             return None
-        deps = self.depends[body]
+        config, deps = self.config, self.depends[body]
         placed = np.array([[self.poses[d, f, v] for d in deps] for f, v in cells]) \
             if deps else np.zeros((len(cells), 0, 4, 4))
-        return SoftTissue(ligaments, spec.name, config.reference.name,
+        return SoftTissue(layout, config.reference.name,
                           tuple(config.bodies[d].name for d in deps), placed)
 
     def chains(self) -> list[_Chain]:
