@@ -1,0 +1,182 @@
+"""Two builds of the exact travel's engine timed on the same searches, call by call.
+
+Run: `python benchmarks/engine_ab.py --base REV [--knees tka,natural,default]
+[--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1] [--runs 3]`. Compiles the engine
+(`kneeseat_core/meshes/_sweep.cpp`) of git revision REV (or a file) and of the working tree
+as two modules under other names, with the flags the package builds it with; builds each
+knee's slice in this process (`kneeseat build --workers 1`) and keeps every call the
+settles make to `SweepPair.measure`; then asks each call of both engines, in turn, the two
+orders alternating from call to call. A machine whose speed drifts within seconds (this
+one is shared) then slows both alike, and their ratio holds where whole builds timed one
+after the other differ by a tenth from run to run. Prints whether the two answered every
+call the same, bit for bit, and per run the seconds of each and their ratio (new / base).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import importlib
+from pathlib import Path
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any
+
+import numpy as np
+from setuptools import Distribution, Extension
+
+from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA, REPO
+from kneeseat_core.cli import main as kneeseat
+from kneeseat_core.meshes import sweep
+from machine import describe_machine
+
+ENGINE = 'kneeseat_core/meshes/_sweep.cpp'
+
+
+def engine_source(base: str) -> str:
+    """The engine's source at git revision `base`, or in the file `base`."""
+    if Path(base).is_file():
+        return Path(base).read_text()
+    found = subprocess.run(['git', '-C', str(REPO), 'show', f'{base}:{ENGINE}'],
+                           capture_output=True, text=True)
+    if found.returncode != 0:
+        raise SystemExit(f'--base {base}: neither a file nor a git revision with {ENGINE}: '
+                         f'{found.stderr.strip()}')
+    return found.stdout
+
+
+def compile_engine(source: str, name: str, where: Path) -> Any:
+    """`source` built as module `name` in `where` (the package's flags) and imported."""
+    text = source.replace('PyInit__sweep(', f'PyInit_{name}(').replace(
+        '"_sweep",', f'"{name}",').replace('"../_buffers.h"',
+                                           f'"{REPO / "kneeseat_core" / "_buffers.h"}"')
+    (where / f'{name}.cpp').write_text(text)
+    dist = Distribution({'ext_modules': [Extension(name, [str(where / f'{name}.cpp')],
+                                                   extra_compile_args=['-O3', '-std=c++17'],
+                                                   language='c++')]})
+    command = dist.get_command_obj('build_ext')
+    command.build_lib = str(where)
+    command.build_temp = str(where / 'temp')
+    command.ensure_finalized()
+    command.run()
+    sys.path.insert(0, str(where))
+    return importlib.import_module(name)
+
+
+def recorded_calls(knee: str, grid: list[str], data: dict[str, Path],
+                   out: Path) -> list[tuple[Any, tuple[Any, ...]]]:
+    """Every `SweepPair.measure` call of `knee`'s slice: the pair and its arguments."""
+    calls: list[tuple[Any, tuple[Any, ...]]] = []
+    original = sweep.SweepPair.measure
+
+    def keep(pair: Any, *args: Any, **kwargs: Any) -> Any:
+        given = args + tuple(kwargs[k] for k in ('start', 'seeds') if k in kwargs)
+        calls.append((pair, copy.deepcopy(given)))
+        return original(pair, *args, **kwargs)
+    sweep.SweepPair.measure = keep      # type: ignore[method-assign]
+    try:
+        args = ['build', '--out', str(out), '--workers', '1', '--quiet', *grid]
+        if knee in CONFIGS:
+            config, where = CONFIGS[knee]
+            args[1:1] = [str(REPO / 'config' / config), '--mesh-dir', str(data[where])]
+        if kneeseat(args) != 0:
+            raise SystemExit(f'{knee}: the build failed')
+    finally:
+        sweep.SweepPair.measure = original   # type: ignore[method-assign]
+    return calls
+
+
+class Engine:
+    """One build of the engine with its own bodies and views (as `SweepBody` keeps them)."""
+
+    def __init__(self, module: Any) -> None:
+        self.module = module
+        self.bodies: dict[int, Any] = {}
+        self.views: dict[tuple[int, int, int, int, int], Any] = {}
+
+    def view(self, body: Any, direction: Any, side: int) -> Any:
+        x, y, z = (round(c / sweep._SAME_DIRECTION) for c in np.asarray(direction).tolist())
+        key = (id(body), side, x, y, z)
+        if key not in self.views:
+            if id(body) not in self.bodies:
+                self.bodies[id(body)] = self.module.Body(
+                    np.ascontiguousarray(body.vertices, dtype=np.float64),
+                    np.ascontiguousarray(body.faces, dtype=np.int64),
+                    np.ascontiguousarray(sweep.sweep_body(body).facing))
+            along = np.array([x, y, z], dtype=np.float64) * sweep._SAME_DIRECTION
+            self.views[key] = self.module.View(self.bodies[id(body)],
+                                               np.ascontiguousarray(along / np.linalg.norm(along)),
+                                               side)
+        return self.views[key]
+
+    def call(self, pair: Any, args: tuple[Any, ...]) -> tuple[Any, ...]:
+        """The engine's arguments for one recorded call (SweepPair.measure's conversions)."""
+        poses, needed, expected, windows, (gaps, slopes, faces), offsets, count, standoff, \
+            deepest, *rest = args
+        start = rest[0] if rest else 0
+        seeds = rest[1] if len(rest) > 1 else None
+        poses = np.ascontiguousarray(poses, dtype=np.float64)
+        turn = poses[0][:3, :3].T @ pair.push
+        floats = [np.ascontiguousarray(a, dtype=np.float64)
+                  for a in (needed, expected, windows, gaps, slopes)]
+        return (self.view(pair.fixed, pair.push, -1), self.view(pair.moving, turn, 1), poses,
+                *floats, np.ascontiguousarray(faces, dtype=np.int64),
+                np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
+                float(deepest), pair._bounds, int(start),
+                None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64))
+
+
+def compare(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine],
+            runs: int) -> tuple[int, list[list[float]]]:
+    """How many calls the two engines answer differently, and per run the seconds of each."""
+    asked = [[engine.call(pair, args) for engine in engines] for pair, args in calls]
+    differ = sum(engines[0].module.measure(*a) != engines[1].module.measure(*b)
+                 for a, b in asked)                 # also fills every view's bounds
+    seconds = [[0.0, 0.0] for _ in range(runs)]
+    for run in range(runs):
+        for n, both in enumerate(asked):
+            for k in ((0, 1) if (n + run) % 2 == 0 else (1, 0)):
+                started = time.perf_counter()
+                engines[k].module.measure(*both[k])
+                seconds[run][k] += time.perf_counter() - started
+    return differ, seconds
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--base', required=True,
+                        help='git revision (or file) of the engine to compare with')
+    parser.add_argument('--knees', default='tka,natural,default',
+                        help='comma list: default, tka, natural, natural_no_menisci')
+    parser.add_argument('--flexion-grid', default='-30,-50,-1', help='START,STOP,STEP degrees')
+    parser.add_argument('--varus-grid', default='-10,10,1', help='START,STOP,STEP degrees')
+    parser.add_argument('--runs', type=int, default=3, help='replays of every call')
+    parser.add_argument('--data', type=Path, default=DEFAULT_DATA,
+                        help='directory of the total-knee meshes')
+    parser.add_argument('--natural-data', type=Path, default=NATURAL_DATA,
+                        help='directory of the natural-knee meshes')
+    args = parser.parse_args()
+    grid = [f'--flexion-grid={args.flexion_grid}', f'--varus-grid={args.varus_grid}']
+    data = {'data': args.data, 'natural_data': args.natural_data}
+    print(describe_machine())
+    with tempfile.TemporaryDirectory(prefix='engine_ab.') as tmp:
+        where = Path(tmp)
+        modules = [compile_engine(engine_source(args.base), 'engine_base', where),
+                   compile_engine((REPO / ENGINE).read_text(), 'engine_new', where)]
+        for knee in (k for k in args.knees.split(',') if k):
+            if knee in CONFIGS and not any(data[CONFIGS[knee][1]].glob('*.stl')):
+                print(f'skipping {knee}: no meshes in {data[CONFIGS[knee][1]]}',
+                      file=sys.stderr)
+                continue
+            calls = recorded_calls(knee, grid, data, where / f'{knee}.npz')
+            differ, seconds = compare(calls, [Engine(m) for m in modules], args.runs)
+            same = 'the same answers bit for bit' if differ == 0 else \
+                f'{differ} calls answered differently'
+            print(f'{knee}: {len(calls)} calls, {same}; seconds base / new (ratio): ' +
+                  ', '.join(f'{b:.3f} / {n:.3f} ({n / b:.3f})' for b, n in seconds))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
