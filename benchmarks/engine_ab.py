@@ -10,6 +10,8 @@ orders alternating from call to call. A machine whose speed drifts within second
 one is shared) then slows both alike, and their ratio holds where whole builds timed one
 after the other differ by a tenth from run to run. Prints whether the two answered every
 call the same, bit for bit, and per run the seconds of each and their ratio (new / base).
+The first, untimed pass builds each engine's views and fills their bounds: the runs time
+the searches themselves, not a view's first filling (a build fills a view per cell).
 """
 from __future__ import annotations
 
