@@ -6,6 +6,8 @@ from concurrent.futures import Future, ProcessPoolExecutor
 import multiprocessing
 import os
 from pathlib import Path
+import subprocess
+import sys
 from typing import Any, Callable
 
 import numpy as np
@@ -65,3 +67,17 @@ def test_preparing_builds_the_scene_once_per_process(tmp_path: Path) -> None:
     assert prepare_worker(spec) == os.getpid()
     assert scene_builds() == built + 1                      # nothing built again
     assert all(sweep_body(b) is k for b, k in zip((fixed, *bodies), kept))
+
+
+def test_the_command_line_keeps_openblas_to_one_thread_unless_the_user_set_it() -> None:
+    """The command line sets OpenBLAS to one thread before numpy loads (the workers it
+    spawns inherit it); a value the user set stands."""
+    probe = ('import kneeseat_core.cli, os, numpy; '
+             'print(os.environ["OPENBLAS_NUM_THREADS"])')
+    env = {k: v for k, v in os.environ.items() if k != 'OPENBLAS_NUM_THREADS'}
+    ours = subprocess.run([sys.executable, '-c', probe], env=env, capture_output=True,
+                          text=True, check=True, timeout=60)
+    theirs = subprocess.run([sys.executable, '-c', probe],
+                            env={**env, 'OPENBLAS_NUM_THREADS': '2'}, capture_output=True,
+                            text=True, check=True, timeout=60)
+    assert (ours.stdout.strip(), theirs.stdout.strip()) == ('1', '2')
