@@ -28,10 +28,10 @@ from typing import Any
 import numpy as np
 from setuptools import Distribution, Extension
 
-from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA, REPO
-from kneeseat_core.cli import main as kneeseat
+from bench_build import REPO
 from kneeseat_core.meshes import sweep
 from machine import describe_machine
+from slices import add_slice_options, build_slice, slice_knees
 
 ENGINE = 'kneeseat_core/meshes/_sweep.cpp'
 
@@ -66,7 +66,7 @@ def compile_engine(source: str, name: str, where: Path) -> Any:
     return importlib.import_module(name)
 
 
-def recorded_calls(knee: str, grid: list[str], data: dict[str, Path],
+def recorded_calls(knee: str, args: argparse.Namespace,
                    out: Path) -> list[tuple[Any, tuple[Any, ...]]]:
     """Every `SweepPair.measure` call of `knee`'s slice: the pair and its arguments."""
     calls: list[tuple[Any, tuple[Any, ...]]] = []
@@ -78,12 +78,7 @@ def recorded_calls(knee: str, grid: list[str], data: dict[str, Path],
         return original(pair, *args, **kwargs)
     sweep.SweepPair.measure = keep      # type: ignore[method-assign]
     try:
-        args = ['build', '--out', str(out), '--workers', '1', '--quiet', *grid]
-        if knee in CONFIGS:
-            config, where = CONFIGS[knee]
-            args[1:1] = [str(REPO / 'config' / config), '--mesh-dir', str(data[where])]
-        if kneeseat(args) != 0:
-            raise SystemExit(f'{knee}: the build failed')
+        build_slice(knee, args, out)
     finally:
         sweep.SweepPair.measure = original   # type: ignore[method-assign]
     return calls
@@ -149,29 +144,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--base', required=True,
                         help='git revision (or file) of the engine to compare with')
-    parser.add_argument('--knees', default='tka,natural,default',
-                        help='comma list: default, tka, natural, natural_no_menisci')
-    parser.add_argument('--flexion-grid', default='-30,-50,-1', help='START,STOP,STEP degrees')
-    parser.add_argument('--varus-grid', default='-10,10,1', help='START,STOP,STEP degrees')
     parser.add_argument('--runs', type=int, default=3, help='replays of every call')
-    parser.add_argument('--data', type=Path, default=DEFAULT_DATA,
-                        help='directory of the total-knee meshes')
-    parser.add_argument('--natural-data', type=Path, default=NATURAL_DATA,
-                        help='directory of the natural-knee meshes')
+    add_slice_options(parser)
     args = parser.parse_args()
-    grid = [f'--flexion-grid={args.flexion_grid}', f'--varus-grid={args.varus_grid}']
-    data = {'data': args.data, 'natural_data': args.natural_data}
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix='engine_ab.') as tmp:
         where = Path(tmp)
         modules = [compile_engine(engine_source(args.base), 'engine_base', where),
                    compile_engine((REPO / ENGINE).read_text(), 'engine_new', where)]
-        for knee in (k for k in args.knees.split(',') if k):
-            if knee in CONFIGS and not any(data[CONFIGS[knee][1]].glob('*.stl')):
-                print(f'skipping {knee}: no meshes in {data[CONFIGS[knee][1]]}',
-                      file=sys.stderr)
-                continue
-            calls = recorded_calls(knee, grid, data, where / f'{knee}.npz')
+        for knee in slice_knees(args):
+            calls = recorded_calls(knee, args, where / f'{knee}.npz')
             differ, seconds = compare(calls, [Engine(m) for m in modules], args.runs)
             same = 'the same answers bit for bit' if differ == 0 else \
                 f'{differ} calls answered differently'

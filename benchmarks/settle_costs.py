@@ -24,13 +24,12 @@ from typing import Any
 
 import fcl
 
-from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA, REPO
-from kneeseat_core.cli import main as kneeseat
 from kneeseat_core.meshes import _sweep
 from kneeseat_core.settle import _simplex
 from kneeseat_core.settle.planner import Planner
 from kneeseat_core.sweep import chains
 from machine import describe_machine
+from slices import add_slice_options, build_slice, slice_knees
 
 # part -> the module attributes a settle calls it through
 PARTS: dict[str, list[tuple[Any, str]]] = {
@@ -60,8 +59,8 @@ class Clock:
         return wrapper
 
 
-def measure(knee: str, grid: list[str], data: dict[str, Path], out: Path) -> Clock:
-    """Build `knee`'s slice `grid` in this process with every compiled part timed."""
+def measure(knee: str, args: argparse.Namespace, out: Path) -> Clock:
+    """Build `knee`'s slice (`args`) in this process with every compiled part timed."""
     clock = Clock()
     timed = {**PARTS, 'settles': [(chains, 'settle')]}
     originals = [(owner, name, getattr(owner, name))
@@ -70,12 +69,7 @@ def measure(knee: str, grid: list[str], data: dict[str, Path], out: Path) -> Clo
         for part, calls in timed.items():
             for owner, name in calls:
                 setattr(owner, name, clock.timed(part, getattr(owner, name)))
-        args = ['build', '--out', str(out), '--workers', '1', '--quiet', *grid]
-        if knee in CONFIGS:
-            config, where = CONFIGS[knee]
-            args[1:1] = [str(REPO / 'config' / config), '--mesh-dir', str(data[where])]
-        if kneeseat(args) != 0:
-            raise SystemExit(f'{knee}: the build failed')
+        build_slice(knee, args, out)
     finally:
         for owner, name, fn in originals:
             setattr(owner, name, fn)
@@ -100,25 +94,12 @@ def report(knee: str, clock: Clock) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--knees', default='tka,natural,default',
-                        help='comma list: default, tka, natural, natural_no_menisci')
-    parser.add_argument('--flexion-grid', default='-30,-50,-1', help='START,STOP,STEP degrees')
-    parser.add_argument('--varus-grid', default='-10,10,1', help='START,STOP,STEP degrees')
-    parser.add_argument('--data', type=Path, default=DEFAULT_DATA,
-                        help='directory of the total-knee meshes')
-    parser.add_argument('--natural-data', type=Path, default=NATURAL_DATA,
-                        help='directory of the natural-knee meshes')
+    add_slice_options(parser)
     args = parser.parse_args()
-    grid = [f'--flexion-grid={args.flexion_grid}', f'--varus-grid={args.varus_grid}']
-    data = {'data': args.data, 'natural_data': args.natural_data}
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix='settle_costs.') as tmp:
-        for knee in (k for k in args.knees.split(',') if k):
-            if knee in CONFIGS and not any(data[CONFIGS[knee][1]].glob('*.stl')):
-                print(f'skipping {knee}: no meshes in {data[CONFIGS[knee][1]]}',
-                      file=sys.stderr)
-                continue
-            report(knee, measure(knee, grid, data, Path(tmp) / f'{knee}.npz'))
+        for knee in slice_knees(args):
+            report(knee, measure(knee, args, Path(tmp) / f'{knee}.npz'))
     return 0
 
 
