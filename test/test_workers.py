@@ -1,5 +1,6 @@
-"""A sweep's workers get ready for their chains: the next worker of a pool builds the scene
-while the first settles the centre cells (`prepare_worker`)."""
+"""A sweep's workers get ready for their chains: the default pool's are forked from the sweep
+with its scene built, and the next worker of a pool that starts them one by one builds the
+scene while the first settles the centre cells (`prepare_worker`)."""
 from __future__ import annotations
 
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -15,7 +16,8 @@ from threadpoolctl import threadpool_info
 from kneeseat_core.cli.main import one_blas_thread
 from kneeseat_core.knee import load_config, materialise_default_knee
 from kneeseat_core.meshes import sweep_body
-from kneeseat_core.sweep import InlineExecutor, prepare_worker, scene_bodies, SceneSpec, sweep
+from kneeseat_core.sweep import (InlineExecutor, prepare_worker, process_executor,
+                                 scene_bodies, SceneSpec, sweep)
 from kneeseat_core.sweep.scene import scene_builds
 
 GRID = {'flexion_deg': [0, -20, 10], 'varus_deg': [-5, 5, 5]}
@@ -54,6 +56,24 @@ def test_a_sweep_readies_the_next_worker_while_the_centre_cells_settle(tmp_path:
     inline = sweep(config, InlineExecutor())
     assert np.array_equal(result.position_m, inline.position_m)
     assert np.array_equal(result.orientation_xyzw, inline.orientation_xyzw)
+
+
+def test_the_default_pool_starts_its_workers_with_the_scene_the_sweep_built(
+        tmp_path: Path) -> None:
+    """The sweep builds its scene before it submits anything, and the default pool's
+    workers are forked then: none of them builds it again."""
+    config = load_config(materialise_default_knee(tmp_path), None, {'grid': GRID})
+    pool = process_executor(2)
+    try:
+        result = sweep(config, pool)
+        built_here = scene_builds()
+        workers = {pool.submit(os.getpid).result(timeout=60) for _ in range(8)}
+        builds = {pool.submit(scene_builds).result(timeout=60) for _ in range(8)}
+    finally:
+        pool.shutdown(wait=True)
+    assert result.converged.all()
+    assert os.getpid() not in workers
+    assert builds == {built_here}       # what each worker inherited, and nothing since
 
 
 def test_preparing_builds_the_scene_once_per_process(tmp_path: Path) -> None:

@@ -17,7 +17,8 @@ converge is settled once more from its own change where the ribs beside gave the
 then from the cold start (the neutral pose backed off one step), and only a converged
 result seeds the next cell.
 
-Workers rebuild the rigid bodies once per process from a small picklable `SceneSpec`
+Workers forked from the sweep's parent (a local pool) start with its rigid bodies; others
+rebuild them once per process from a small picklable `SceneSpec`
 (`kneeseat_core.sweep.scene`), with their hierarchies for the exact travel: at their first
 chain, or ahead of it (`prepare_worker`, which a sweep asks of a pool's next worker while
 the first settles the centre cell). A process that runs chains keeps BLAS to one thread: a
@@ -39,7 +40,6 @@ from threadpoolctl import threadpool_limits
 from kneeseat_core.errors import NoContactError, SettleError
 from kneeseat_core.geometry import carried, pose_from
 from kneeseat_core.ligaments import LigamentSet, Tissue, TissueLayout
-from kneeseat_core.meshes import sweep_body
 from kneeseat_core.params import SettleParams
 from kneeseat_core.settle import settle
 from kneeseat_core.status import Status
@@ -197,13 +197,13 @@ def _retry_starts(previous: Pose, previous_attitude: Floats, attitude: Floats,
 def prepare_worker(scene: SceneSpec) -> int:
     """Make this process ready to settle `scene`'s chains (BLAS kept to one thread, the
     bodies built with their hierarchies for the exact travel) before its first chain comes;
-    returns the process id. A pool spawns its next worker when the first chain is
-    submitted, and the others wait for the centre cell anyway: the next worker does its
-    part of the start meanwhile instead of at its first chain."""
+    returns the process id. A pool that starts its workers one by one (spawned, or on a
+    Dask cluster) starts its next one when the first chain is submitted, and the others
+    wait for the centre cell anyway: the next worker does its part of the start meanwhile
+    instead of at its first chain. A worker forked from the sweep's parent has it all
+    already."""
     _one_blas_thread()
-    fixed, bodies = scene_bodies(scene)
-    for body in (fixed, *bodies):
-        sweep_body(body)
+    scene_bodies(scene)
     return os.getpid()
 
 

@@ -1,8 +1,8 @@
 """Where the chains of a sweep run: any `concurrent.futures.Executor`.
 
-In-process for one worker (`InlineExecutor`), a process pool of spawned workers for more,
-or a Dask cluster (`kneeseat_core.sweep.cluster`, imported only when a scheduler is given:
-Dask adds seconds to the start-up of every build that does not use it).
+In-process for one worker (`InlineExecutor`), a process pool for more, or a Dask cluster
+(`kneeseat_core.sweep.cluster`, imported only when a scheduler is given: Dask adds seconds
+to the start-up of every build that does not use it).
 """
 from __future__ import annotations
 
@@ -33,11 +33,19 @@ class InlineExecutor(Executor):
 
 
 def process_executor(workers: int) -> Executor:
-    """The default executor: in-process for one worker, else a process pool (spawn)."""
+    """The default executor: in-process for one worker, else a process pool.
+
+    The pool's workers are forked from this process where the platform forks (all of
+    them at the first submit: `concurrent.futures` forks before its own thread starts), so
+    they start with its imports and the scene a sweep builds before it submits anything
+    (`kneeseat_core.sweep.scene`); spawned, each took about 1.4 s on the total knee to
+    import and build its own (docs/design.md). Elsewhere they are spawned.
+    """
     if workers <= 1:
         return InlineExecutor()
+    method = 'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn'
     return ProcessPoolExecutor(max_workers=workers,
-                               mp_context=multiprocessing.get_context('spawn'))
+                               mp_context=multiprocessing.get_context(method))
 
 
 def executor_for(workers: int, scheduler: str | None) -> tuple[Executor, Callable[[], None]]:

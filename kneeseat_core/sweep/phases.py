@@ -34,11 +34,14 @@ spin that the spine's two-contact rests determine at each flexion out to every v
 value, so varus neighbours agree; independent flexion columns each kept their own spin
 and disagreed by up to 2.6 deg (docs/tables.md).
 
-The parent validates every mesh once before the sweep (warnings such as an open cartilage
-sheet appear once per mesh), so workers load quietly. With the centre chains it submits one
-`prepare_worker`: a pool spawns its next worker for it, which builds the scene while the
-first settles the centre cells that every other chain waits for (on the total knee its
-first chain then starts 1.2 s sooner and takes 0.06 s instead of 0.9 s).
+The parent builds the scene before the sweep (`scene_bodies`: the meshes loaded and
+validated, warnings such as an open cartilage sheet once per mesh, and the bodies'
+hierarchies), so that workers forked from it (a local pool, `kneeseat_core.sweep.executors`)
+start settling at once and others load quietly. With the centre chains it submits one
+`prepare_worker`: a pool that starts its workers one by one (spawned, or Dask) starts its
+next worker for it, which builds the scene while the first settles the centre cells that
+every other chain waits for (on the total knee, with spawned workers, its first chain then
+started 1.2 s sooner and took 0.06 s instead of 0.9 s).
 """
 from __future__ import annotations
 
@@ -54,12 +57,11 @@ import numpy as np
 from kneeseat_core.files import file_sha256
 from kneeseat_core.geometry import quat_from_matrix, TOL
 from kneeseat_core.knee import KneeConfig, neutral_pose
-from kneeseat_core.meshes import check_mesh_files
 from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .chains import (ChainJob, ChainResult, cold_start, mean_change, prepare_worker,
                      run_chain, SoftTissue)
-from .scene import SceneSpec
+from .scene import scene_bodies, SceneSpec
 
 __all__ = ['SweepResult', 'sweep', 'ribs_beside']
 
@@ -186,7 +188,7 @@ class _Sweep:
                   for spec in (config.reference, *config.bodies)]
         self.scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
                                tuple(file_sha256(Path(p)) for g in groups for p in g))
-        check_mesh_files(self.scene.paths(), config.units)   # once here; workers load quietly
+        scene_bodies(self.scene, quiet=False)     # validated here; workers forked now have it
         self.f0 = int(np.argmin(np.abs(flex)))
         self.v0 = int(np.argmin(np.abs(var)))
         self.poses = np.zeros((nb, nf, nv, 4, 4))

@@ -2,8 +2,11 @@
 
 A `SceneSpec` names each body's mesh files (one path, or several combined into one rigid
 body) and units, and carries each file's SHA-256, so it is small, picklable and hashable:
-a chain job carries only it. `scene_bodies` builds the bodies once per process and keeps
-the last scene (workers load quietly: the sweep's parent has validated every mesh). A
+a chain job carries only it. `scene_bodies` builds the bodies, with their hierarchies for
+python-fcl and for the exact travel, once per process and keeps the last scene. The sweep's
+parent builds it first, validating every mesh (warnings appear once); a local pool's
+workers are forked from the parent and start with it, and other workers build it again,
+quietly. A
 worker that cannot read the paths (a remote Dask worker) finds the bytes shipped to it by
 content (`register_mesh_copy`, kneeseat_core/cluster.py), and a long-lived worker never
 reuses bodies of a mesh file that has since changed (the hashes are part of the spec).
@@ -13,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import threading
 
-from kneeseat_core.meshes import load_meshes, RigidBody, Units
+from kneeseat_core.meshes import load_meshes, RigidBody, sweep_body, Units
 
 __all__ = ['SceneSpec', 'scene_bodies', 'register_mesh_copy', 'scene_builds']
 
@@ -66,8 +69,16 @@ def _mesh_source(spec: SceneSpec, index: int, path: str) -> str:
     return path
 
 
-def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
-    """The rigid bodies of `spec`, built once per process and cached (loaded quietly)."""
+def scene_bodies(spec: SceneSpec, quiet: bool = True) -> tuple[RigidBody, tuple[RigidBody, ...]]:
+    """The rigid bodies of `spec` with their hierarchies for the exact travel
+    (`sweep_body`), built once per process and cached.
+
+    Args:
+        quiet: load without the warnings a mesh may get (a worker's load: the sweep's
+            parent has validated every mesh); False for the parent's own.
+    Raises:
+        MeshError: a mesh is missing, unreadable or implausible (`load_mesh`).
+    """
     global _SCENE_BUILDS
     with _SCENES_LOCK:
         if spec not in _SCENES:
@@ -75,8 +86,9 @@ def scene_bodies(spec: SceneSpec) -> tuple[RigidBody, tuple[RigidBody, ...]]:
             for group in groups:
                 sources = [_mesh_source(spec, index + k, p) for k, p in enumerate(group)]
                 index += len(group)
-                bodies_list.append(RigidBody.from_mesh(
-                    load_meshes(sources, spec.units, quiet=True)))
+                body = RigidBody.from_mesh(load_meshes(sources, spec.units, quiet))
+                sweep_body(body)
+                bodies_list.append(body)
             bodies = tuple(bodies_list)
             _SCENES.clear()          # one scene per worker at a time keeps memory flat
             _SCENES[spec] = (bodies[0], bodies[1:])
