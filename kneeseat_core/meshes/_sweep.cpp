@@ -178,9 +178,13 @@ struct View {
     std::vector<uint32_t> placed_stamp;
     std::unique_ptr<Placed[]> placed_bounds;
     std::vector<uint32_t> placed_bound_stamp;
+    // each triangle's slope (`slope`), 0 not yet asked, 1 kept, 2 none to trust
+    std::unique_ptr<double[]> slopes;
+    std::vector<uint8_t> has_slope;
 
     View(const Body &b, const double *direction, int side_);
     const double *vertex(int32_t i);
+    const double *slope(int32_t t);
     bool takes_part(int32_t t) const;
     KNEESEAT_INLINE const Bound &bound(int node) {
         if (__builtin_expect(!has_bound[node], 0)) fill(node);
@@ -209,6 +213,9 @@ View::View(const Body &b, const double *direction, int side_) : body(&b), side(s
     has_shadow.assign(nv, 0);
     bounds.reset(new Bound[b.nodes.size()]);
     has_bound.assign(b.nodes.size(), 0);
+    size_t nt = b.faces.size() / 3;
+    slopes.reset(new double[2 * nt]);
+    has_slope.assign(nt, 0);
 }
 
 KNEESEAT_INLINE const double *View::vertex(int32_t i) {
@@ -220,6 +227,29 @@ KNEESEAT_INLINE const double *View::vertex(int32_t i) {
         has_shadow[i] = 1;
     }
     return &shadow[3 * i];
+}
+
+// The slope (gx, gy) of triangle t's height over its shadow: its plane is
+// h = h0 + gx (u - u0) + gy (w - w0) through any of its vertices (u0, w0, h0). None
+// (nullptr) where the shadow is a sliver or the plane steep to d, which would make the
+// slope's rounding matter.
+KNEESEAT_INLINE const double *View::slope(int32_t t) {
+    uint8_t &known = has_slope[t];
+    double *g = &slopes[2 * t];
+    if (__builtin_expect(known == 0, 0)) {
+        const int32_t *f = &body->faces[3 * t];
+        const double *p0 = vertex(f[0]), *p1 = vertex(f[1]), *p2 = vertex(f[2]);
+        double e1x = p1[0] - p0[0], e1y = p1[1] - p0[1], e1h = p1[2] - p0[2];
+        double e2x = p2[0] - p0[0], e2y = p2[1] - p0[1], e2h = p2[2] - p0[2];
+        double area = cross2(e1x, e1y, e2x, e2y);
+        known = 2;
+        if (std::fabs(area) > 1e-3 * (e1x * e1x + e1y * e1y + e2x * e2x + e2y * e2y)) {
+            g[0] = (e1h * e2y - e2h * e1y) / area;
+            g[1] = (e1x * e2h - e2x * e1h) / area;
+            if (std::fabs(g[0]) + std::fabs(g[1]) <= 16.0) known = 1;
+        }
+    }
+    return known == 1 ? g : nullptr;
 }
 
 bool View::takes_part(int32_t t) const {
@@ -301,6 +331,10 @@ inline double edge_distance(const double *p0, const double *p1, const double *p2
     }
     return least;
 }
+
+// What a pair's least gap computed from the triangles' planes may fall short of the one
+// computed from their features by rounding (m): far above it, far below any resolution.
+constexpr double kPlaneSlack = 1e-9;
 
 struct Visit {          // a pair of nodes to open: fixed, moving, and their gap's lower bound
     int32_t a, b;
@@ -487,18 +521,35 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     const double *B[3] = {fixed->vertex(ff[0]), fixed->vertex(ff[1]), fixed->vertex(ff[2])};
     // cheap rejections first: shadows' boxes apart, or every point of B further along d
     // than every point of A by more than the cutoff
+    double lo[2], hi[2];           // the overlap of the shadows' boxes
     for (int k = 0; k < 2; ++k) {
         double alo = std::min(std::min(A[0][k], A[1][k]), A[2][k]);
         double ahi = std::max(std::max(A[0][k], A[1][k]), A[2][k]);
         double blo = std::min(std::min(B[0][k], B[1][k]), B[2][k]);
         double bhi = std::max(std::max(B[0][k], B[1][k]), B[2][k]);
         if (ahi < blo || bhi < alo) return;
+        lo[k] = std::max(alo, blo);
+        hi[k] = std::min(ahi, bhi);
     }
     double alow = std::min(std::min(A[0][2], A[1][2]), A[2][2]);
     double ahigh = std::max(std::max(A[0][2], A[1][2]), A[2][2]);
     double blow = std::min(std::min(B[0][2], B[1][2]), B[2][2]);
     double bhigh = std::max(std::max(B[0][2], B[1][2]), B[2][2]);
     if (blow - ahigh > cutoff() || bhigh - alow < -behind) return;
+    // the gap between the two planes is affine over the shadows: over the overlap of their
+    // boxes (which holds the overlap of the shadows) it is least at the corner its slopes
+    // point away from; beyond the cutoff by more than rounding, every feature is too
+    const double *ga = moving->slope(ta), *gb = fixed->slope(tb);
+    if (ga && gb) {
+        // the moving triangle's slope turned into the fixed view
+        double ax = cos_ * ga[0] - sin_ * ga[1], ay = sin_ * ga[0] + cos_ * ga[1];
+        double bx = gb[0], by = gb[1];
+        double sx = bx - ax, sy = by - ay;
+        double qx = sx >= 0.0 ? lo[0] : hi[0], qy = sy >= 0.0 ? lo[1] : hi[1];
+        double least = (B[0][2] + bx * (qx - B[0][0]) + by * (qy - B[0][1]))
+                       - (A[0][2] + ax * (qx - A[0][0]) + ay * (qy - A[0][1]));
+        if (least > cutoff() + kPlaneSlack) return;
+    }
     const PairGap g(A, B);
     if (g.kind < 0 || g.most < -behind) return;      // shadows apart, or wholly behind
     if (g.least <= -behind) { buried = true; return; }
