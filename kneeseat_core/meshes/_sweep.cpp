@@ -360,6 +360,8 @@ struct Sweep {
     const double *moving_vertex(int32_t i);
     const Placed &moving_bound(int b);
     bool node_bounds(int a, int b, double &lo, double &hi);
+    double planes_least(const double *const A[3], const double *const B[3], int32_t ta,
+                        int32_t tb, const double lo[2], const double hi[2]);
     double cutoff() const { return std::min(best + window, limit); }
     void triangle_pair(int32_t moving_face, int32_t fixed_face);
     void run(const int64_t *seeds = nullptr, Py_ssize_t count = 0);
@@ -513,6 +515,41 @@ PairGap::PairGap(const double *const A[3], const double *const B[3]) {
     }
 }
 
+// A lower bound of the gap along d between moving triangle ta and fixed triangle tb (their
+// vertices A and B placed, the overlap of their shadows' boxes [lo, hi]): the gap between
+// their planes is affine over the shadows, so over that overlap (which holds the overlap
+// of the shadows) it is least at the corner its slopes point away from. Short of the least
+// gap their features give by rounding only (`kPlaneSlack`); -inf where a slope is not to
+// be trusted.
+KNEESEAT_INLINE double Sweep::planes_least(const double *const A[3], const double *const B[3],
+                                           int32_t ta, int32_t tb, const double lo[2],
+                                           const double hi[2]) {
+    const double *ga = moving->slope(ta), *gb = fixed->slope(tb);
+    if (!ga || !gb) return -kInf;
+    // the moving triangle's slope turned into the fixed view
+    double ax = cos_ * ga[0] - sin_ * ga[1], ay = sin_ * ga[0] + cos_ * ga[1];
+    double sx = gb[0] - ax, sy = gb[1] - ay;
+    double qx = sx >= 0.0 ? lo[0] : hi[0], qy = sy >= 0.0 ? lo[1] : hi[1];
+    return (B[0][2] + gb[0] * (qx - B[0][0]) + gb[1] * (qy - B[0][1]))
+           - (A[0][2] + ax * (qx - A[0][0]) + ay * (qy - A[0][1]));
+}
+
+// The overlap [lo, hi] of the boxes of the shadows of A and B (each vertex (u, w, h));
+// false where they are apart.
+KNEESEAT_INLINE bool boxes_overlap(const double *const A[3], const double *const B[3],
+                                   double lo[2], double hi[2]) {
+    for (int k = 0; k < 2; ++k) {
+        double alo = std::min(std::min(A[0][k], A[1][k]), A[2][k]);
+        double ahi = std::max(std::max(A[0][k], A[1][k]), A[2][k]);
+        double blo = std::min(std::min(B[0][k], B[1][k]), B[2][k]);
+        double bhi = std::max(std::max(B[0][k], B[1][k]), B[2][k]);
+        if (ahi < blo || bhi < alo) return false;
+        lo[k] = std::max(alo, blo);
+        hi[k] = std::min(ahi, bhi);
+    }
+    return true;
+}
+
 void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     ++pairs;
     const Body &mb = *moving->body, &fb = *fixed->body;
@@ -521,35 +558,14 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     const double *B[3] = {fixed->vertex(ff[0]), fixed->vertex(ff[1]), fixed->vertex(ff[2])};
     // cheap rejections first: shadows' boxes apart, or every point of B further along d
     // than every point of A by more than the cutoff
-    double lo[2], hi[2];           // the overlap of the shadows' boxes
-    for (int k = 0; k < 2; ++k) {
-        double alo = std::min(std::min(A[0][k], A[1][k]), A[2][k]);
-        double ahi = std::max(std::max(A[0][k], A[1][k]), A[2][k]);
-        double blo = std::min(std::min(B[0][k], B[1][k]), B[2][k]);
-        double bhi = std::max(std::max(B[0][k], B[1][k]), B[2][k]);
-        if (ahi < blo || bhi < alo) return;
-        lo[k] = std::max(alo, blo);
-        hi[k] = std::min(ahi, bhi);
-    }
+    double lo[2], hi[2];
+    if (!boxes_overlap(A, B, lo, hi)) return;
     double alow = std::min(std::min(A[0][2], A[1][2]), A[2][2]);
     double ahigh = std::max(std::max(A[0][2], A[1][2]), A[2][2]);
     double blow = std::min(std::min(B[0][2], B[1][2]), B[2][2]);
     double bhigh = std::max(std::max(B[0][2], B[1][2]), B[2][2]);
     if (blow - ahigh > cutoff() || bhigh - alow < -behind) return;
-    // the gap between the two planes is affine over the shadows: over the overlap of their
-    // boxes (which holds the overlap of the shadows) it is least at the corner its slopes
-    // point away from; beyond the cutoff by more than rounding, every feature is too
-    const double *ga = moving->slope(ta), *gb = fixed->slope(tb);
-    if (ga && gb) {
-        // the moving triangle's slope turned into the fixed view
-        double ax = cos_ * ga[0] - sin_ * ga[1], ay = sin_ * ga[0] + cos_ * ga[1];
-        double bx = gb[0], by = gb[1];
-        double sx = bx - ax, sy = by - ay;
-        double qx = sx >= 0.0 ? lo[0] : hi[0], qy = sy >= 0.0 ? lo[1] : hi[1];
-        double least = (B[0][2] + bx * (qx - B[0][0]) + by * (qy - B[0][1]))
-                       - (A[0][2] + ax * (qx - A[0][0]) + ay * (qy - A[0][1]));
-        if (least > cutoff() + kPlaneSlack) return;
-    }
+    if (planes_least(A, B, ta, tb, lo, hi) > cutoff() + kPlaneSlack) return;
     const PairGap g(A, B);
     if (g.kind < 0 || g.most < -behind) return;      // shadows apart, or wholly behind
     if (g.least <= -behind) { buried = true; return; }
@@ -921,8 +937,15 @@ bool pair_short(Sweep &s, const int64_t *pair, double needed, double behind, std
     const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
     const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
     const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
-    PairGap g(A, B);
-    if (g.kind >= 0 && g.most >= -behind && g.least < needed) return true;
+    double lo[2], hi[2];
+    // shadows apart, or the planes' bound at or beyond `needed` by more than rounding: no
+    // feature closes short of it
+    if (boxes_overlap(A, B, lo, hi) &&
+        s.planes_least(A, B, mb.tree_index[pair[0]], fb.tree_index[pair[1]], lo, hi) <
+            needed + kPlaneSlack) {
+        PairGap g(A, B);
+        if (g.kind >= 0 && g.most >= -behind && g.least < needed) return true;
+    }
     vertices.insert(vertices.end(), fa, fa + 3);
     return false;
 }
