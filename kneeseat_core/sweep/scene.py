@@ -6,10 +6,10 @@ a chain job carries only it. `scene_bodies` builds the bodies, with their hierar
 python-fcl and for the exact travel, once per process and keeps the last scene. The sweep's
 parent builds it first, validating every mesh (warnings appear once); a local pool's
 workers are forked from the parent and start with it, and other workers build it again,
-quietly. A
-worker that cannot read the paths (a remote Dask worker) finds the bytes shipped to it by
-content (`register_mesh_copy`, kneeseat_core/cluster.py), and a long-lived worker never
-reuses bodies of a mesh file that has since changed (the hashes are part of the spec).
+quietly. A worker that cannot read the paths (a remote Dask worker) finds the bytes shipped
+to it by content (`register_mesh_copy`, kneeseat_core/cluster.py), and a long-lived worker
+never reuses bodies of a mesh file that has since changed (the hashes are part of the
+spec).
 """
 from __future__ import annotations
 
