@@ -30,6 +30,7 @@ from kneeseat_core.sweep.cluster import _forward, dask_executor, worker_stats
 from kneeseat_core.errors import ConfigError, KneeseatError, MeshError
 from kneeseat_core.geometry import pose_from
 from kneeseat_core.knee import KneeConfig, load_config
+from kneeseat_core.sweep import chains as chain_module
 from kneeseat_core.sweep import ChainJob, make_table, run_chain, SceneSpec, sweep
 from kneeseat_core.files import file_sha256
 from kneeseat_core.table import PoseTable, read_table
@@ -183,6 +184,27 @@ def spine_job(config: KneeConfig, scene: SceneSpec) -> ChainJob:
     start = pose_from(np.eye(3), -np.asarray(params[0].push) * config.settle.step_m)
     return ChainJob(scene, 0, ((0, 0), (1, 0), (2, 0)), attitudes, params, start, np.eye(3),
                     np.eye(4), np.eye(3))
+
+
+def test_a_chain_starts_its_climbs_with_short_moves_only_from_a_rest(
+        small_config: KneeConfig, monkeypatch: pytest.MonkeyPatch) -> None:
+    # a chain whose start is not a rest (a centre cell's) climbs its first cell with the
+    # ordinary first moves, and the cells after it, each started from the rest before it,
+    # with short ones; a chain that starts from a rest starts short at once
+    asked: list[bool] = []
+    real = chain_module.settle
+
+    def recording(*args: Any, **kwargs: Any) -> Any:
+        asked.append(bool(kwargs['near_rest'] if 'near_rest' in kwargs
+                          else len(args) > 7 and args[7]))
+        return real(*args, **kwargs)
+    monkeypatch.setattr(chain_module, 'settle', recording)
+    job = spine_job(small_config, tibia_scene(small_config))
+    cold = run_chain(dataclasses.replace(job, start_at_rest=False))
+    assert cold.converged.all() and asked == [False, True, True]
+    asked.clear()
+    warm = run_chain(job)
+    assert warm.converged.all() and asked == [True, True, True]
 
 
 def test_a_cell_the_ribs_beside_lead_astray_settles_from_its_own_change(

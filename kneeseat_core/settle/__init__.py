@@ -65,7 +65,7 @@ __all__ = ['Method', 'SettleParams', 'Contacts', 'SettleResult', 'settle']
 
 def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParams,
            anchor: Pose | None = None, tissue: Tissue | None = None,
-           seeds: Ints | None = None) -> SettleResult:
+           seeds: Ints | None = None, near_rest: bool = False) -> SettleResult:
     """Push `moving` along `params.push` until it rests on `fixed`.
 
     Args:
@@ -81,6 +81,9 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
         seeds: (k, 2) pairs of triangles (moving face, fixed face) likely to touch first
             from `start` (a neighbouring settle's `touching`): the default method's first
             search starts from them, which changes how fast it ends, never its answer.
+        near_rest: `start` is a neighbouring cell's rest carried to this attitude (a
+            sweep's warm start), so the rest is expected within about a finest move: the
+            default method's first moves are then short (`SettleTuning.near_first_moves`).
     Returns:
         The settle result; `converged` says whether the method's stop rule was met.
     Raises:
@@ -103,4 +106,4 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
             raise NoContactError(limit)
         return run_patent(search, bracket)
     search.sweep = SweepPair(fixed, moving, search.push)
-    return run_climb(search, pose, tissue, TUNING, seeds)
+    return run_climb(search, pose, tissue, TUNING, seeds, near_rest)

@@ -97,7 +97,7 @@ class _Climb:
     """The state of one climb and its steps."""
 
     def __init__(self, search: Search, sweep: SweepPair, tuning: SettleTuning,
-                 tissue: Tissue | None) -> None:
+                 tissue: Tissue | None, near_rest: bool = False) -> None:
         p = search.params
         self.search, self.sweep, self.tuning = search, sweep, tuning
         self.arm = max(search.pair.moving.reach, p.step_m)
@@ -108,7 +108,8 @@ class _Climb:
         self.standoff = tuning.standoff_res * p.resolution_m
         self.lift = self.objective.precision * tuning.probe_lift_res * p.resolution_m
         self.gain = self.objective.precision * tuning.move_gain_res * p.resolution_m
-        self.scale = tuning.first_moves * self.finest
+        self.scale = (tuning.near_first_moves if near_rest else tuning.first_moves) \
+            * self.finest
         self.directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (search.free == 0), axis=1)]
         self.planner = Planner(search, self.objective, self.arm, self.standoff)
         self.here: _Place | None = None
@@ -360,14 +361,16 @@ class _Climb:
 
 
 def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
-              tuning: SettleTuning = TUNING, seeds: Ints | None = None) -> SettleResult:
+              tuning: SettleTuning = TUNING, seeds: Ints | None = None,
+              near_rest: bool = False) -> SettleResult:
     """Climb from the free pose `start` (its contact along Δ found first, its search
-    starting from the pairs of triangles `seeds` where given) to a rest pose (module
+    starting from the pairs of triangles `seeds` where given; `near_rest`: a neighbouring
+    cell's rest carried over, whose first moves are short) to a rest pose (module
     docstring), of the travel, or of the load's work less the energy of the `tissue`
     acting on the body (`kneeseat_core.settle.objective`)."""
     p = search.params
     assert search.sweep is not None
-    climb = _Climb(search, search.sweep, tuning, tissue)
+    climb = _Climb(search, search.sweep, tuning, tissue, near_rest)
     first = climb.arrive(start, 0.0, tuning.pool_window_res, seeds=seeds)
     if not isinstance(first, _Place):
         raise NoContactError(search.travel_limit(start))

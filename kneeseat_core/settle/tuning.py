@@ -40,7 +40,11 @@ class SettleTuning:
         move_gain_res: ...this (resolutions, times the objective's precision): anything the
             exact travel measures, so that a shallow slope is followed to its top and the
             proof is left what gains nothing; a longer move must gain the proof's lift.
-        first_moves: the first scale (finest moves, per coordinate).
+        first_moves: the first scale (finest moves, per coordinate), or...
+        near_first_moves: ...this one where the start is a neighbouring cell's rest
+            carried over (`settle(..., near_rest=True)`): that rest is expected within
+            about a finest move, and longer first moves overshoot it (on the total knee's
+            slice, 5.9 exact travels a cell against 7.2 at 2 finest moves).
         grow: a scale that gained grows by this factor, up to...
         far_moves: ...this scale;
         shrink: one that found nothing shrinks by this factor, down to...
@@ -76,6 +80,7 @@ class SettleTuning:
     fine_moves: float = 2.0
     move_gain_res: float = 1e-4
     first_moves: float = 2.0
+    near_first_moves: float = 0.5
     grow: float = 2.0
     far_moves: float = 16.0
     shrink: float = 0.25

@@ -15,7 +15,8 @@ delivered turned by the attitude (`kneeseat_core.knee.neutral_pose`). So a chain
 drift farther from the joint than the envelope. A cell whose warm-started settle does not
 converge is settled once more from its own change where the ribs beside gave the start,
 then from the cold start (the neutral pose backed off one step), and only a converged
-result seeds the next cell.
+result seeds the next cell. A settle started from a rest carried over climbs with short
+first moves (`settle(..., near_rest=True)`: the rest is expected that close).
 
 Workers forked from the sweep's parent (a local pool) start with its rigid bodies; others
 rebuild them once per process from a small picklable `SceneSpec`
@@ -67,6 +68,7 @@ class ChainJob:
     # (n, 4, 4) per cell, the change of rest the ribs beside made from the cell before it
     # (the chain's start for the first) to it (`rest_change`); NaN where none is known
     beside: Floats | None = None
+    start_at_rest: bool = True              # `start` is a rest (a centre cell's is not)
 
     def tissue(self, i: int) -> Tissue | None:
         """The ligaments acting on the body at the chain's i-th cell."""
@@ -184,14 +186,15 @@ def _one_blas_thread() -> None:
 
 def _retry_starts(previous: Pose, previous_attitude: Floats, attitude: Floats,
                   params: SettleParams, before: tuple[Pose, Floats] | None,
-                  led_by_beside: bool) -> Iterator[Pose]:
-    """The starts a cell whose warm-started settle did not converge is tried from next, made
+                  led_by_beside: bool, at_rest: bool) -> Iterator[tuple[Pose, bool]]:
+    """The starts a cell whose warm-started settle did not converge is tried from next,
+    each with whether it is a rest carried over (`previous` is one where `at_rest`), made
     only when asked: its own change where the ribs beside gave the start (they may lead it
     astray), then the cold start (the chain drifted)."""
     if led_by_beside:
         yield warm_start(previous, previous_attitude, attitude, np.asarray(params.push),
-                         params.step_m, before)
-    yield cold_start(attitude, params)
+                         params.step_m, before), at_rest
+    yield cold_start(attitude, params), False
 
 
 def prepare_worker(scene: SceneSpec) -> int:
@@ -222,6 +225,7 @@ def run_chain(job: ChainJob) -> ChainResult:
     reasons: list[str] = []
     checks = travels = fcl = 0
     previous, previous_attitude = job.start, job.start_attitude
+    at_rest = job.start_at_rest             # `previous` is a rest: its cell's are short
     before: tuple[Pose, Floats] | None = None
     # the triangles in contact at the rest just before: the next search starts from them
     seeds: Ints | None = None
@@ -234,17 +238,19 @@ def run_chain(job: ChainJob) -> ChainResult:
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:
-            result = settle(fixed, moving, start, params, anchor, tissue, seeds)
+            result = settle(fixed, moving, start, params, anchor, tissue, seeds, at_rest)
         except (NoContactError, SettleError) as err:
             poses[i] = start
             reasons.append(f'failed: {err}')
             continue
         tried = [result]
         retries = () if result.converged else _retry_starts(
-            previous, previous_attitude, attitude, params, before, beside is not None)
-        for retry_start in retries:
+            previous, previous_attitude, attitude, params, before, beside is not None,
+            at_rest)
+        for retry_start, near_rest in retries:
             try:
-                retry = settle(fixed, moving, retry_start, params, anchor, tissue)
+                retry = settle(fixed, moving, retry_start, params, anchor, tissue,
+                               near_rest=near_rest)
             except (NoContactError, SettleError):
                 continue            # a start that cannot settle is no better: the next
             tried.append(retry)
@@ -264,6 +270,7 @@ def run_chain(job: ChainJob) -> ChainResult:
             before = (previous, previous_attitude) if i > 0 and converged[i - 1] else None
             previous, previous_attitude = result.pose, attitude
             seeds = result.touching
+            at_rest = True
         else:
             before = seeds = None
     return ChainResult(job.body, job.cells, poses, converged, iterations, status, checks,

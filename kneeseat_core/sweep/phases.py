@@ -217,16 +217,18 @@ class _Sweep:
                                    and all(self.varus_free[d] for d in self.depends[b]))
 
     def job(self, body: int, cells: Sequence[tuple[int, int]], start: Pose,
-            start_attitude: Floats, beside: Floats | None = None) -> ChainJob:
-        """The chain of `cells` of `body`, from `start` (settled at `start_attitude`), with
-        the changes of rest the ribs `beside` it made (`changes_beside`)."""
+            start_attitude: Floats, beside: Floats | None = None,
+            at_rest: bool = True) -> ChainJob:
+        """The chain of `cells` of `body`, from `start` (settled at `start_attitude`; a
+        rest unless `at_rest` is False), with the changes of rest the ribs `beside` it
+        made (`changes_beside`)."""
         config, flex, var = self.config, self.config.flexion_rad, self.config.varus_rad
         spec = config.bodies[body]
         return ChainJob(self.scene, body, tuple(cells),
                         np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
                         start, start_attitude, self.anchors[body], self.centre_attitudes[body],
-                        self.soft_tissue(body, cells), beside)
+                        self.soft_tissue(body, cells), beside, at_rest)
 
     def soft_tissue(self, body: int, cells: Sequence[tuple[int, int]]) -> SoftTissue | None:
         """The ligaments acting on `body` along a chain, each cell's other bodies where they
@@ -306,7 +308,8 @@ class _Sweep:
         if chain.kind == 'centre':
             a0 = self.centre_attitudes[b]
             return self.job(b, chain.cells, cold_start(a0, config.params(spec, flex[f],
-                                                                         var[v])), a0)
+                                                                         var[v])), a0,
+                            at_rest=False)
         if chain.kind == 'spine':
             step = 1 if f > self.f0 else -1
             for g in range(f - step, self.f0, -step):       # nearest first
@@ -314,7 +317,8 @@ class _Sweep:
                     return self.job(b, chain.cells, self.poses[b, g, self.v0],
                                     config.attitude(spec, flex[g], var[self.v0]))
             return self.job(b, chain.cells, self.poses[b, self.f0, self.v0],
-                            self.centre_attitudes[b])
+                            self.centre_attitudes[b],
+                            at_rest=bool(self.converged[b, self.f0, self.v0]))
         return self.job(b, chain.cells, self.poses[b, f, self.v0],
                         config.attitude(spec, flex[f], var[self.v0]),
                         self.changes_beside(b, f, chain.cells))
