@@ -934,15 +934,14 @@ constexpr int kFirstWitnesses = 8;
 // triangle's vertices are added to `vertices` otherwise.
 bool pair_short(Sweep &s, const int64_t *pair, double needed, double behind, std::vector<int32_t> &vertices) {
     const Body &mb = *s.moving->body, &fb = *s.fixed->body;
-    const int32_t *fa = &mb.faces[3 * mb.tree_index[pair[0]]], *ff = &fb.faces[3 * fb.tree_index[pair[1]]];
+    const int32_t ta = mb.tree_index[pair[0]], tb = fb.tree_index[pair[1]];
+    const int32_t *fa = &mb.faces[3 * ta], *ff = &fb.faces[3 * tb];
     const double *A[3] = {s.moving_vertex(fa[0]), s.moving_vertex(fa[1]), s.moving_vertex(fa[2])};
     const double *B[3] = {s.fixed->vertex(ff[0]), s.fixed->vertex(ff[1]), s.fixed->vertex(ff[2])};
     double lo[2], hi[2];
     // shadows apart, or the planes' bound at or beyond `needed` by more than rounding: no
     // feature closes short of it
-    if (boxes_overlap(A, B, lo, hi) &&
-        s.planes_least(A, B, mb.tree_index[pair[0]], fb.tree_index[pair[1]], lo, hi) <
-            needed + kPlaneSlack) {
+    if (boxes_overlap(A, B, lo, hi) && s.planes_least(A, B, ta, tb, lo, hi) < needed + kPlaneSlack) {
         PairGap g(A, B);
         if (g.kind >= 0 && g.most >= -behind && g.least < needed) return true;
     }
