@@ -238,7 +238,8 @@ def run_chain(job: ChainJob) -> ChainResult:
         anchor = carried(job.anchor, job.anchor_attitude, attitude)
         tissue = job.tissue(i)
         try:
-            result = settle(fixed, moving, start, params, anchor, tissue, seeds, at_rest)
+            result = settle(fixed, moving, start, params, anchor, tissue, seeds,
+                            near_rest=at_rest)
         except (NoContactError, SettleError) as err:
             poses[i] = start
             reasons.append(f'failed: {err}')
