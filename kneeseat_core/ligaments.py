@@ -25,7 +25,7 @@ settle (which minimises nothing here: it reads energies and forces).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 import hashlib
 import json
 import math
@@ -202,16 +202,33 @@ class TissueLayout:
     slack_m: Floats              # (f,)
     stiffness_n: Floats          # (f,)
     transition: Floats           # (f,)
+    # the tissue with the other bodies' points still in their own frames (what `place`
+    # moves), and which of its fixed points each other body holds: the same at every cell
+    _unplaced: Tissue = field(init=False, repr=False)
+    _held: tuple[tuple[str, Ints], ...] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        moving = np.array([b == self.body for b in self.owners], dtype=bool)
+        unplaced = Tissue.of(self.names, self.bundles, self.points, moving, self.seg_a,
+                             self.seg_b, self.seg_fibre, self.slack_m, self.stiffness_n,
+                             self.transition)
+        owners = [b for b in self.owners if b != self.body]    # in the tissue's order
+        held = tuple((name, np.array([i for i, b in enumerate(owners) if b == name]))
+                     for name in dict.fromkeys(owners))
+        object.__setattr__(self, '_unplaced', unplaced)
+        object.__setattr__(self, '_held', held)
 
     def place(self, placed: Mapping[str, Pose]) -> Tissue:
         """The tissue with every body other than the moving one at its pose in `placed`
         (body name -> (4, 4) pose in the reference frame)."""
-        body = self.body
-        local = [p if b == body else placed[b][:3, :3] @ p + placed[b][:3, 3]
-                 for b, p in zip(self.owners, self.points)]
-        return Tissue.of(self.names, self.bundles, np.array(local),
-                         np.array([b == body for b in self.owners]), self.seg_a, self.seg_b,
-                         self.seg_fibre, self.slack_m, self.stiffness_n, self.transition)
+        unplaced = self._unplaced
+        world = unplaced.fixed_world.copy()
+        for name, rows in self._held:
+            # each point turned as a pose turns one point (`turn @ p`), all at once
+            turn, shift = placed[name][:3, :3], placed[name][:3, 3]
+            world[rows] = (np.broadcast_to(turn, (len(rows), 3, 3))
+                           @ world[rows][:, :, None])[:, :, 0] + shift
+        return unplaced.placed(world)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -260,6 +277,16 @@ class Tissue:
         return cls(names, bundles, placed[:k], placed[k:], a, b, seg_fibre,
                    slack_m, stiffness_n, transition, incidence.T @ placed[:k],
                    incidence.sum(axis=0), fixed_end)
+
+    def placed(self, fixed_world: Floats) -> Tissue:
+        """The same fibres with the points fixed in the reference frame at `fixed_world`
+        ((n - k, 3), in this tissue's order): where the bodies holding them rest now."""
+        k = len(self.moving_local)
+        a, b = self.seg_a, self.seg_b
+        points = np.concatenate([self.moving_local, fixed_world])
+        fixed_end = np.where((b >= k)[:, None], points[b], 0.0) \
+            - np.where((a >= k)[:, None], points[a], 0.0)
+        return replace(self, fixed_world=fixed_world, seg_fixed=fixed_end)
 
     def world(self, pose: Pose) -> Floats:
         """(n, 3) every point in the reference frame with the body at `pose` (the moving
