@@ -72,6 +72,10 @@ class _Place:
     wide: bool
     # the models of the travel about it, by (within, room) (`_Climb.model`)
     models: dict[tuple[float, float], Model] = field(default_factory=dict)
+    # the objective's first-order terms there (`_Climb.first_order`), once asked
+    first: tuple[float, Floats] | None = None
+    # the body's centroid there (`Search.centre`: the spins' axis), once asked
+    centre: Floats | None = None
 
 
 class _Short:
@@ -163,9 +167,18 @@ class _Climb:
         that hold for a slide of at least `room` (`Planner.model`), kept with the place."""
         found = place.models.get((within, room))
         if found is None:
+            if place.centre is None:
+                place.centre = self.search.centre(place.pose)
             found = place.models[(within, room)] = self.planner.model(
-                place.touch, self.search.centre(place.pose), within, room)
+                place.touch, place.centre, within, room)
         return found
+
+    def first_order(self, place: _Place) -> tuple[float, Floats]:
+        """(press, drive) at `place` (`Planner.first_order`), kept with the place: every
+        step and proof there asks for them."""
+        if place.first is None:
+            place.first = self.planner.first_order(place.pose)
+        return place.first
 
     def settle_in(self, place: _Place) -> None:
         """Start at `place` (the first contact): its features within the wide window are
@@ -224,7 +237,7 @@ class _Climb:
         near = self.model(self.here, self.tuning.contact_tol_res * s.params.resolution_m)
         if len(near.gaps) == 0:
             return np.zeros((0, 3))
-        press, drive = self.planner.first_order(self.here.pose)
+        press, drive = self.first_order(self.here)
         x, promised = best_move(near, press, drive, scale * s.free)
         return x[None] if promised > 0.0 and np.any(x != 0.0) else np.zeros((0, 3))
 
@@ -271,7 +284,7 @@ class _Climb:
         s, t = self.search, self.tuning
         started = time.perf_counter()
         try:
-            press, drive = self.planner.first_order(self.here.pose)
+            press, drive = self.first_order(self.here)
             pressed = max(1.0, press)
             scales = list(zip(t.probe_scales_moves, t.hopeless_res))
             if pressed >= t.pressed_from:
@@ -324,7 +337,7 @@ class _Climb:
         here = self.here
         near = self.model(here, t.contact_tol_res * s.params.resolution_m,
                           t.room_share * float(np.max(np.abs(moves))))
-        press, drive = self.planner.first_order(here.pose)
+        press, drive = self.first_order(here)
         # ordered by what the near-active features promise (to first order they bound the
         # travel after a move from above), each with the travel it must reach: one Newton
         # step of the lift that gains (no more than the lift needed: the objective is
