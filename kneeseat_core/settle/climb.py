@@ -110,6 +110,9 @@ class _Climb:
         self.objective: Objective = objective_for(p, tissue)
         self.finest = min(p.resolution_m, rot_res * self.arm)
         self.standoff = tuning.standoff_res * p.resolution_m
+        self.contact_tol = tuning.contact_tol_res * p.resolution_m
+        self.windows = (tuning.window_res * p.resolution_m,        # a place's, and the
+                        tuning.pool_window_res * p.resolution_m)   # pool's
         self.lift = self.objective.precision * tuning.probe_lift_res * p.resolution_m
         self.gain = self.objective.precision * tuning.move_gain_res * p.resolution_m
         self.scale = (tuning.near_first_moves if near_rest else tuning.first_moves) \
@@ -194,7 +197,7 @@ class _Climb:
         where it was taken to name the pairs that close first there: a place there becomes
         the pool when the climb moves to it, so it is measured with the pool's window."""
         reach = self.tuning.pool_reach_moves * self.finest
-        out: Bools = np.max(np.abs(offsets), axis=-1) > reach
+        out: Bools = np.abs(offsets).max(axis=-1) > reach
         return out
 
     # ---- the steps -------------------------------------------------------------------
@@ -234,12 +237,12 @@ class _Climb:
         contact kept: slide and spin combined as no fixed direction combines them)."""
         assert self.here is not None
         s = self.search
-        near = self.model(self.here, self.tuning.contact_tol_res * s.params.resolution_m)
+        near = self.model(self.here, self.contact_tol)
         if len(near.gaps) == 0:
             return np.zeros((0, 3))
         press, drive = self.first_order(self.here)
         x, promised = best_move(near, press, drive, scale * s.free)
-        return x[None] if promised > 0.0 and np.any(x != 0.0) else np.zeros((0, 3))
+        return x[None] if promised > 0.0 and x.any() else np.zeros((0, 3))
 
     def _inside(self, moves: Floats, length: float) -> Floats:
         """The moves of `moves` (m, 3), each of max-norm `length`, shortened to stay inside
@@ -289,7 +292,7 @@ class _Climb:
             scales = list(zip(t.probe_scales_moves, t.hopeless_res))
             if pressed >= t.pressed_from:
                 scales.insert(0, (t.pressed_probe_moves, t.hopeless_res[0]))
-            near = self.model(self.here, t.contact_tol_res * s.params.resolution_m,
+            near = self.model(self.here, self.contact_tol,
                               t.room_share * self.finest)
             floor = float(np.min(near.gaps)) if len(near.gaps) else 0.0
             for scale, hopeless_res in scales:
@@ -331,12 +334,11 @@ class _Climb:
         and so on, in one compiled call up to the first that reaches its travel
         (`SweepPair.measure`); that one gains or the next call goes on from it."""
         assert self.here is not None and self.pool is not None
-        s, t, sweep = self.search, self.tuning, self.sweep
+        t, sweep = self.tuning, self.sweep
         if len(moves) == 0:
             return None
         here = self.here
-        near = self.model(here, t.contact_tol_res * s.params.resolution_m,
-                          t.room_share * float(np.max(np.abs(moves))))
+        near = self.model(here, self.contact_tol, t.room_share * float(np.abs(moves).max()))
         press, drive = self.first_order(here)
         # ordered by what the near-active features promise (to first order they bound the
         # travel after a move from above), each with the travel it must reach: one Newton
@@ -349,10 +351,10 @@ class _Climb:
         pool = self.pool.model
         # penetration from a lateral move of length l is at most its steepest slope times l:
         # a vertex that far above a face is through it
-        deepest = STEEPEST * float(np.max(np.abs(moves))) + self.standoff
+        deepest = STEEPEST * float(np.abs(moves).max()) + self.standoff
         offsets = moves + (here.state - self.pool.state)
         wide = self._beyond_pool(offsets)
-        windows = np.where(wide, t.pool_window_res, t.window_res) * s.params.resolution_m
+        windows = np.where(wide, self.windows[1], self.windows[0])
         i = 0
         while True:
             # the next move that its witnesses (the pairs the pool says close first there)
