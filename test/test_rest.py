@@ -24,10 +24,13 @@ import trimesh
 
 from conftest import REPO
 from kneeseat_core.cli import main
-from kneeseat_core.meshes import RigidBody
+from kneeseat_core.meshes import CollisionPair, RigidBody, SweepPair
 from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix, rotation_about
 from kneeseat_core.referee import Envelope, Referee
 from kneeseat_core.settle import settle, SettleParams, SettleResult
+from kneeseat_core.settle.climb import _Climb
+from kneeseat_core.settle.search import Search
+from kneeseat_core.settle.tuning import TUNING
 from kneeseat_core.status import Status
 import settle_cases as sc
 import shapes
@@ -177,6 +180,24 @@ def test_an_envelope_that_holds_gives_a_constrained_rest_the_referee_accepts() -
     verdict = Referee([block], [sphere], np.array([0.0, -1.0, 0.0]), RESOLUTION_M).judge(
         result.pose, Envelope(start, 8e-3, math.radians(45.0)))
     assert verdict.gain_m <= RESOLUTION_M
+
+
+def test_far_from_an_envelope_that_holds_every_move_keeps_its_length() -> None:
+    """Far from an envelope that holds, the climb's moves are made whole at every scale,
+    the least (a quarter of the finest move) included: none is dropped as having no room
+    (it was, when a move's whole length equalled the share of the finest move below which
+    one the envelope shortens is dropped)."""
+    var = sc.variant('spheres_equal_slack', 'plain')
+    held = params(var, max_slide_m=1.0, envelope_holds=True)
+    search = Search(CollisionPair(var.fixed, var.moving), var.start, held, var.start)
+    search.sweep = SweepPair(var.fixed, var.moving, search.push)
+    climb = _Climb(search, search.sweep, TUNING, None)
+    first = climb.arrive(var.start, 0.0, TUNING.pool_window_res)
+    assert first is not None
+    climb.settle_in(first)
+    for scale in (TUNING.least_moves, TUNING.near_first_moves, 1.0, TUNING.far_moves):
+        moves = scale * climb.finest * climb.directions
+        assert np.array_equal(climb._inside(moves, scale * climb.finest), moves), scale
 
 
 def test_a_dome_is_left_with_lost_contact() -> None:

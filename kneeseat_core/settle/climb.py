@@ -252,7 +252,9 @@ class _Climb:
             return moves
         rooms = np.asarray(self.search.limits_to_envelope(self.here.pose, self.arm,
                                                           moves / length, length))
-        keep = rooms > self.tuning.room_share * self.finest
+        # a move the envelope leaves whole is made (the shortest ones included); one it
+        # shortens only while it leaves more than a share of the finest move
+        keep = (rooms >= length) | (rooms > self.tuning.room_share * self.finest)
         out: Floats = moves[keep] * (rooms[keep] / length)[:, None]
         return out
 
