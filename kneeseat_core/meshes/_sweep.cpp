@@ -55,6 +55,8 @@ struct Node {
     double lo[3], hi[3];      // bounding box, the body's frame
 };
 
+struct ViewBuffers;
+
 // One triangle mesh and its hierarchy, in the body's own frame.
 struct Body {
     std::vector<double> vertices;    // (n, 3)
@@ -66,6 +68,8 @@ struct Body {
     std::vector<int8_t> facing;      // (m,) +1/-1: the outward side of a closed surface
                                      // (winding or its reverse); 0: open, both sides count
     std::vector<Node> nodes;
+    // the arrays of views of it that are gone, for the next ones (`View`)
+    mutable std::vector<ViewBuffers> spare;
 
     int build(std::vector<int32_t> &order, const std::vector<double> &centres, int first, int count);
 };
@@ -161,19 +165,15 @@ struct Placed {
 // searches took 4 % less time, the same answers bit for bit (benchmarks/engine_ab.py).
 #define KNEESEAT_INLINE __attribute__((always_inline)) inline
 
-// A body seen along a direction d (its own frame): heights along d, shadows in the plane
-// across it (basis u, w), and the bounds of its nodes, each computed when first asked.
-struct View {
-    const Body *body;
-    double d[3], u[3], w[3];
-    int side;                          // +1: the faces whose outside faces +d take part
-    // filled as asked, never cleared beforehand: a flag says what holds a value
+// What a view of a body fills as it is asked, never cleared beforehand: a flag or a stamp
+// says what holds a value.
+struct ViewBuffers {
     std::unique_ptr<double[]> shadow;  // (n, 3): u, w, h of each vertex
     std::vector<uint8_t> has_shadow;
     std::unique_ptr<Bound[]> bounds;
     std::vector<uint8_t> has_bound;
     // the moving body's vertices and node bounds placed for the current query (fixed view
-    // coordinates), each marked with the query's stamp when computed
+    // coordinates), each marked with the query's stamp when computed (a moving view's)
     std::unique_ptr<double[]> placed;
     std::vector<uint32_t> placed_stamp;
     std::unique_ptr<Placed[]> placed_bounds;
@@ -181,8 +181,26 @@ struct View {
     // each triangle's slope (`slope`), 0 not yet asked, 1 kept, 2 none to trust
     std::unique_ptr<double[]> slopes;
     std::vector<uint8_t> has_slope;
+};
+
+// How many sets of a body's view arrays are kept for its next views. A sweep makes a view
+// per cell (the push turns with the attitude): arrays kept in use are already mapped and
+// partly cached, where fresh ones (megabytes for a knee's bodies) cost a page fault at
+// every first touch, and their flags a clearing either way.
+constexpr size_t kSpareViews = 2;
+
+// A body seen along a direction d (its own frame): heights along d, shadows in the plane
+// across it (basis u, w), and the bounds of its nodes, each computed when first asked.
+// `side` +1 (a moving body's view) also places its vertices and node bounds per query.
+struct View : ViewBuffers {
+    const Body *body;
+    double d[3], u[3], w[3];
+    int side;                          // +1: the faces whose outside faces +d take part
 
     View(const Body &b, const double *direction, int side_);
+    ~View();
+    View(const View &) = delete;
+    View &operator=(const View &) = delete;
     const double *vertex(int32_t i);
     const double *slope(int32_t t);
     bool takes_part(int32_t t) const;
@@ -208,14 +226,30 @@ void across(const double d[3], double u[3], double w[3]) {
 View::View(const Body &b, const double *direction, int side_) : body(&b), side(side_) {
     for (int k = 0; k < 3; ++k) d[k] = direction[k];
     across(d, u, w);
-    size_t nv = b.vertices.size() / 3;
-    shadow.reset(new double[3 * nv]);
+    size_t nv = b.vertices.size() / 3, nn = b.nodes.size(), nt = b.faces.size() / 3;
+    if (!b.spare.empty()) {            // a gone view's arrays, their flags cleared
+        static_cast<ViewBuffers &>(*this) = std::move(b.spare.back());
+        b.spare.pop_back();
+    } else {
+        shadow.reset(new double[3 * nv]);
+        bounds.reset(new Bound[nn]);
+        slopes.reset(new double[2 * nt]);
+    }
     has_shadow.assign(nv, 0);
-    bounds.reset(new Bound[b.nodes.size()]);
-    has_bound.assign(b.nodes.size(), 0);
-    size_t nt = b.faces.size() / 3;
-    slopes.reset(new double[2 * nt]);
+    has_bound.assign(nn, 0);
     has_slope.assign(nt, 0);
+    if (side == 1) {
+        if (!placed) {
+            placed.reset(new double[3 * nv]);
+            placed_bounds.reset(new Placed[nn]);
+        }
+        placed_stamp.assign(nv + 1, 0);
+        placed_bound_stamp.assign(nn, 0);
+    }
+}
+
+View::~View() {
+    if (body->spare.size() < kSpareViews) body->spare.push_back(std::move(static_cast<ViewBuffers &>(*this)));
 }
 
 KNEESEAT_INLINE const double *View::vertex(int32_t i) {
@@ -743,11 +777,6 @@ int view_init(PyView *self, PyObject *args, PyObject *) {
     if (ok) {
         delete self->view;
         self->view = new View(*reinterpret_cast<PyBody *>(bo)->body, d, side);
-        size_t nv = self->view->body->vertices.size() / 3;
-        self->view->placed.reset(new double[3 * nv]);
-        self->view->placed_stamp.assign(nv + 1, 0);
-        self->view->placed_bounds.reset(new Placed[self->view->body->nodes.size()]);
-        self->view->placed_bound_stamp.assign(self->view->body->nodes.size(), 0);
         Py_INCREF(bo);
         Py_XDECREF(self->body);
         self->body = bo;
