@@ -1,0 +1,129 @@
+"""Two revisions of the climb timed on the same settles, settle by settle.
+
+Run: `python benchmarks/climb_ab.py --base REV [--knees tka,natural,default]
+[--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1]`. Loads the climb
+(`kneeseat_core/settle/climb.py`) of git revision REV (or a file) as a second module beside
+the working tree's, the rest of the package shared; builds each knee's slice in this
+process (`kneeseat build --workers 1`) and settles every cell twice, once with each climb,
+which goes first alternating from cell to cell, the table built from the working tree's
+settles. A machine whose speed drifts within seconds (this one is shared) slows the two
+settles of a cell alike: their ratio holds to about a percent where whole builds timed
+one after the other differ by a tenth. Prints per knee the milliseconds a settle with
+each (the whole settle: python-fcl's queries and the set-up are the same in both) and
+their ratio (new / base), and how many cells the two settled differently (pose or
+iterations, bit for bit). For a change to the engine, `engine_ab.py`; elsewhere in the
+package, whole builds.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+import subprocess
+import sys
+import tempfile
+import time
+from types import ModuleType
+from typing import Any
+
+from bench_build import REPO
+import kneeseat_core.settle as settle_package
+from kneeseat_core.settle import climb as new_climb
+from kneeseat_core.sweep import chains
+from machine import describe_machine
+from slices import add_slice_options, build_slice, slice_knees
+
+CLIMB = 'kneeseat_core/settle/climb.py'
+
+
+def climb_source(base: str) -> str:
+    """The climb's source at git revision `base`, or in the file `base`."""
+    if Path(base).is_file():
+        return Path(base).read_text()
+    found = subprocess.run(['git', '-C', str(REPO), 'show', f'{base}:{CLIMB}'],
+                           capture_output=True, text=True)
+    if found.returncode != 0:
+        raise SystemExit(f'--base {base}: neither a file nor a git revision with {CLIMB}: '
+                         f'{found.stderr.strip()}')
+    return found.stdout
+
+
+def load_climb(source: str, where: Path) -> ModuleType:
+    """`source` loaded as a module of the settle package (its relative imports are the
+    working tree's)."""
+    path = where / 'climb_base.py'
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location('kneeseat_core.settle.climb_base', path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    try:
+        spec.loader.exec_module(module)
+    except ImportError as err:
+        raise SystemExit(f'the base climb does not load beside this tree: {err}') from None
+    return module
+
+
+class Paired:
+    """`chains.settle` replaced: every settle run with both climbs, timed."""
+
+    def __init__(self, base: ModuleType) -> None:
+        self.climbs = {'base': base.run_climb, 'new': new_climb.run_climb}
+        self.seconds = {'base': 0.0, 'new': 0.0}
+        self.settles = 0
+        self.differ = 0
+        self.settle = chains.settle
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        order = ('base', 'new') if self.settles % 2 == 0 else ('new', 'base')
+        results: dict[str, Any] = {}
+        try:
+            for side in order:
+                settle_package.run_climb = self.climbs[side]
+                started = time.perf_counter()
+                try:
+                    results[side] = self.settle(*args, **kwargs)
+                except Exception as err:          # the chain handles it; compared below
+                    results[side] = err
+                self.seconds[side] += time.perf_counter() - started
+        finally:
+            settle_package.run_climb = new_climb.run_climb
+        self.settles += 1
+        new, base = results['new'], results['base']
+        if isinstance(new, Exception) or isinstance(base, Exception):
+            self.differ += type(new) is not type(base)
+        elif new.pose.tobytes() != base.pose.tobytes() or new.iterations != base.iterations:
+            self.differ += 1
+        if isinstance(new, Exception):
+            raise new
+        return new
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--base', required=True,
+                        help='git revision (or file) of the climb to compare with')
+    add_slice_options(parser)
+    args = parser.parse_args()
+    print(describe_machine())
+    with tempfile.TemporaryDirectory(prefix='climb_ab.') as tmp:
+        where = Path(tmp)
+        base = load_climb(climb_source(args.base), where)
+        for knee in slice_knees(args):
+            paired = Paired(base)
+            chains.settle = paired
+            try:
+                build_slice(knee, args, where / f'{knee}.npz')
+            finally:
+                chains.settle = paired.settle
+            n = max(paired.settles, 1)
+            b, w = (1e3 * paired.seconds[side] / n for side in ('base', 'new'))
+            same = 'the same bit for bit' if paired.differ == 0 else \
+                f'{paired.differ} settled differently'
+            print(f'{knee}: {paired.settles} settles, {same}; ms a settle base / new: '
+                  f'{b:.3f} / {w:.3f} (ratio {w / b:.4f})')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
