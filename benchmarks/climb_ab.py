@@ -72,14 +72,14 @@ class Paired:
         self.seconds = {'base': 0.0, 'new': 0.0}
         self.settles = 0
         self.differ = 0
-        self.settle = chains.settle
+        self.settle = getattr(chains, 'settle')      # what the chains call, replaced
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         order = ('base', 'new') if self.settles % 2 == 0 else ('new', 'base')
         results: dict[str, Any] = {}
         try:
             for side in order:
-                settle_package.run_climb = self.climbs[side]
+                setattr(settle_package, 'run_climb', self.climbs[side])
                 started = time.perf_counter()
                 try:
                     results[side] = self.settle(*args, **kwargs)
@@ -87,7 +87,7 @@ class Paired:
                     results[side] = err
                 self.seconds[side] += time.perf_counter() - started
         finally:
-            settle_package.run_climb = new_climb.run_climb
+            setattr(settle_package, 'run_climb', new_climb.run_climb)
         self.settles += 1
         new, base = results['new'], results['base']
         if isinstance(new, Exception) or isinstance(base, Exception):
@@ -111,11 +111,11 @@ def main() -> int:
         base = load_climb(climb_source(args.base), where)
         for knee in slice_knees(args):
             paired = Paired(base)
-            chains.settle = paired
+            setattr(chains, 'settle', paired)
             try:
                 build_slice(knee, args, where / f'{knee}.npz')
             finally:
-                chains.settle = paired.settle
+                setattr(chains, 'settle', paired.settle)
             n = max(paired.settles, 1)
             b, w = (1e3 * paired.seconds[side] / n for side in ('base', 'new'))
             same = 'the same bit for bit' if paired.differ == 0 else \
