@@ -72,8 +72,8 @@ class _Place:
     wide: bool
     # the models of the travel about it, by (within, room) (`_Climb.model`)
     models: dict[tuple[float, float], Model] = field(default_factory=dict)
-    # the objective's first-order terms there (`_Climb.first_order`), once asked
-    first: tuple[float, Floats] | None = None
+    # the objective's first-order terms and the pulls there (`Planner.terms`), once asked
+    terms: tuple[float, Floats, float, float] | None = None
     # the body's centroid there (`Search.centre`: the spins' axis), once asked
     centre: Floats | None = None
 
@@ -176,12 +176,17 @@ class _Climb:
                 place.touch, place.centre, within, room)
         return found
 
+    def terms(self, place: _Place) -> tuple[float, Floats, float, float]:
+        """(press, drive, pull, line) at `place` (`Planner.terms`), kept with the place:
+        every step and proof there asks for them."""
+        if place.terms is None:
+            place.terms = self.planner.terms(place.pose)
+        return place.terms
+
     def first_order(self, place: _Place) -> tuple[float, Floats]:
-        """(press, drive) at `place` (`Planner.first_order`), kept with the place: every
-        step and proof there asks for them."""
-        if place.first is None:
-            place.first = self.planner.first_order(place.pose)
-        return place.first
+        """(press, drive) at `place` (`Planner.first_order`)."""
+        press, drive, _, _ = self.terms(place)
+        return press, drive
 
     def settle_in(self, place: _Place) -> None:
         """Start at `place` (the first contact): its features within the wide window are
@@ -277,7 +282,7 @@ class _Climb:
     def pulled(self) -> End | None:
         """The end when the body's ligaments pull it off the fixed body against its load."""
         assert self.here is not None
-        pull, load = self.planner.pulls(self.here.pose)
+        _, _, pull, load = self.terms(self.here)
         if load - pull > 0.0:
             return None
         return (Status.PULLED, self.objective.pulled_off(pull, load))

@@ -97,17 +97,22 @@ class Planner:
         work less the ligaments' energy, or the depth along Δ for the travel alone."""
         return float(self._native.value(_floats(pose)))
 
+    def terms(self, pose: Pose) -> tuple[float, Floats, float, float]:
+        """`first_order` and `pulls` at `pose` from one call: (press, drive, pull, line)."""
+        press, drive, pull, line = self._native.first_order(_floats(pose))
+        return press, np.frombuffer(drive, dtype=np.float64), pull, line
+
     def first_order(self, pose: Pose) -> tuple[float, Floats]:
         """(press, drive (3,)) at `pose`: a move x over (slide e1, slide e2, arc) that
         changes the travel by dt changes the objective by press dt + drive . x, to first
         order (`kneeseat_core.settle.objective`); the travel alone: (1, 0)."""
-        press, drive, _, _ = self._native.first_order(_floats(pose))
-        return press, np.frombuffer(drive, dtype=np.float64)
+        press, drive, _, _ = self.terms(pose)
+        return press, drive
 
     def pulls(self, pose: Pose) -> tuple[float, float]:
         """At `pose`, per unit load: the ligaments' pull along -Δ (dE/ds / F) and the load's
         along Δ (l . Δ); the body is pressed on while the second exceeds the first."""
-        _, _, pull, line = self._native.first_order(_floats(pose))
+        _, _, pull, line = self.terms(pose)
         return pull, line
 
     def pushes(self, poses: Floats) -> tuple[Floats, Floats]:
