@@ -76,6 +76,8 @@ class _Place:
     terms: tuple[float, Floats, float, float] | None = None
     # the body's centroid there (`Search.centre`: the spins' axis), once asked
     centre: Floats | None = None
+    # its slide and spin from the envelope's anchor (`Search.offset`), once asked
+    offset: tuple[Floats, float] | None = None
 
 
 class _Short:
@@ -255,8 +257,11 @@ class _Climb:
         assert self.here is not None
         if not self.search.params.envelope_holds:
             return moves
+        if self.here.offset is None:
+            self.here.offset = self.search.offset(self.here.pose)
         rooms = np.asarray(self.search.limits_to_envelope(self.here.pose, self.arm,
-                                                          moves / length, length))
+                                                          moves / length, length,
+                                                          self.here.offset))
         # a move the envelope leaves whole is made (the shortest ones included); one it
         # shortens only while it leaves more than a share of the finest move
         keep = (rooms >= length) | (rooms > self.tuning.room_share * self.finest)

@@ -188,14 +188,15 @@ class Search:
                     'near the start')
         return None
 
-    def limits_to_envelope(self, pose: Pose, arm: float, directions: Floats,
-                           length: float) -> list[float]:
+    def limits_to_envelope(self, pose: Pose, arm: float, directions: Floats, length: float,
+                           offset: tuple[Floats, float] | None = None) -> list[float]:
         """The longest move from `pose` along each of `directions` (m, 3) (up to `length`)
-        that stays inside an envelope that holds (`length` itself otherwise)."""
+        that stays inside an envelope that holds (`length` itself otherwise); `offset`:
+        the pose's `offset`, where the caller has it already."""
         p = self.params
         if not p.envelope_holds:
             return [length] * len(directions)
-        slide, spin = self.offset(pose)
+        slide, spin = self.offset(pose) if offset is None else offset
         # far enough inside that no move reaches a bound (with a margin no rounding of the
         # bounds below can cross): every move keeps its whole length
         across = float(np.max(np.hypot(directions[:, 0], directions[:, 1]), initial=0.0))
