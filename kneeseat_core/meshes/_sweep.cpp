@@ -183,10 +183,10 @@ struct ViewBuffers {
     std::vector<uint8_t> has_slope;
 };
 
-// How many sets of a body's view arrays are kept for its next views. A sweep makes a view
-// per cell (the push turns with the attitude): arrays kept in use are already mapped and
-// partly cached, where fresh ones (megabytes for a knee's bodies) cost a page fault at
-// every first touch, and their flags a clearing either way.
+// How many sets of a body's view arrays are kept for its next views. A sweep makes a fixed
+// view per cell (the push turns with the attitude in the fixed body's frame): a new view of
+// the total knee's femoral component took 88 us to allocate its arrays (megabytes) and
+// clear their flags, 8 us with a gone view's arrays, whose flags alone are cleared.
 constexpr size_t kSpareViews = 2;
 
 // A body seen along a direction d (its own frame): heights along d, shadows in the plane
