@@ -19,33 +19,19 @@ from __future__ import annotations
 import argparse
 import importlib.util
 from pathlib import Path
-import subprocess
 import sys
 import tempfile
 import time
 from types import ModuleType
 from typing import Any
 
-from bench_build import REPO
 import kneeseat_core.settle as settle_package
 from kneeseat_core.settle import climb as new_climb
 from kneeseat_core.sweep import chains
 from machine import describe_machine
-from slices import add_slice_options, build_slice, slice_knees
+from slices import add_slice_options, build_slice, slice_knees, source_at
 
 CLIMB = 'kneeseat_core/settle/climb.py'
-
-
-def climb_source(base: str) -> str:
-    """The climb's source at git revision `base`, or in the file `base`."""
-    if Path(base).is_file():
-        return Path(base).read_text()
-    found = subprocess.run(['git', '-C', str(REPO), 'show', f'{base}:{CLIMB}'],
-                           capture_output=True, text=True)
-    if found.returncode != 0:
-        raise SystemExit(f'--base {base}: neither a file nor a git revision with {CLIMB}: '
-                         f'{found.stderr.strip()}')
-    return found.stdout
 
 
 def load_climb(source: str, where: Path) -> ModuleType:
@@ -108,7 +94,7 @@ def main() -> int:
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix='climb_ab.') as tmp:
         where = Path(tmp)
-        base = load_climb(climb_source(args.base), where)
+        base = load_climb(source_at(args.base, CLIMB), where)
         for knee in slice_knees(args):
             paired = Paired(base)
             setattr(chains, 'settle', paired)

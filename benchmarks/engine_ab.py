@@ -19,7 +19,6 @@ import argparse
 import copy
 import importlib
 from pathlib import Path
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,21 +30,9 @@ from setuptools import Distribution, Extension
 from bench_build import REPO
 from kneeseat_core.meshes import sweep
 from machine import describe_machine
-from slices import add_slice_options, build_slice, slice_knees
+from slices import add_slice_options, build_slice, slice_knees, source_at
 
 ENGINE = 'kneeseat_core/meshes/_sweep.cpp'
-
-
-def engine_source(base: str) -> str:
-    """The engine's source at git revision `base`, or in the file `base`."""
-    if Path(base).is_file():
-        return Path(base).read_text()
-    found = subprocess.run(['git', '-C', str(REPO), 'show', f'{base}:{ENGINE}'],
-                           capture_output=True, text=True)
-    if found.returncode != 0:
-        raise SystemExit(f'--base {base}: neither a file nor a git revision with {ENGINE}: '
-                         f'{found.stderr.strip()}')
-    return found.stdout
 
 
 def compile_engine(source: str, name: str, where: Path) -> Any:
@@ -150,7 +137,7 @@ def main() -> int:
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix='engine_ab.') as tmp:
         where = Path(tmp)
-        modules = [compile_engine(engine_source(args.base), 'engine_base', where),
+        modules = [compile_engine(source_at(args.base, ENGINE), 'engine_base', where),
                    compile_engine((REPO / ENGINE).read_text(), 'engine_new', where)]
         for knee in slice_knees(args):
             calls = recorded_calls(knee, args, where / f'{knee}.npz')

@@ -1,9 +1,11 @@
-"""A slice of a knee's table built in this process, and the options that choose it: what the
-benchmarks that look inside the settles share (`settle_costs.py`, `engine_ab.py`)."""
+"""A slice of a knee's table built in this process, the options that choose it, and a
+file's source at another revision: what the benchmarks that look inside the settles share
+(`settle_costs.py`, `engine_ab.py`, `climb_ab.py`)."""
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+import subprocess
 import sys
 
 from bench_build import CONFIGS, DEFAULT_DATA, NATURAL_DATA, REPO
@@ -44,3 +46,16 @@ def build_slice(knee: str, args: argparse.Namespace, out: Path) -> None:
         command[1:1] = [str(REPO / 'config' / config), '--mesh-dir', str(data)]
     if kneeseat(command) != 0:
         raise SystemExit(f'{knee}: the build failed')
+
+
+def source_at(base: str, path: str) -> str:
+    """The text of the repository's file `path` at git revision `base`, or of the file
+    `base` itself."""
+    if Path(base).is_file():
+        return Path(base).read_text()
+    found = subprocess.run(['git', '-C', str(REPO), 'show', f'{base}:{path}'],
+                           capture_output=True, text=True)
+    if found.returncode != 0:
+        raise SystemExit(f'--base {base}: neither a file nor a git revision with {path}: '
+                         f'{found.stderr.strip()}')
+    return found.stdout
