@@ -231,6 +231,14 @@ class TissueLayout:
         return unplaced.placed(world)
 
 
+def _fixed_ends(points: Floats, k: int, seg_a: Ints, seg_b: Ints) -> Floats:
+    """(s, 3) each segment's ends fixed in the reference frame, end less start (`points`:
+    the k on the moving body first, then the fixed ones; a moving end counts none)."""
+    out: Floats = np.where((seg_b >= k)[:, None], points[seg_b], 0.0) \
+        - np.where((seg_a >= k)[:, None], points[seg_a], 0.0)
+    return out
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Tissue:
     """The fibres acting on one moving body in one settle (`LigamentSet.tissue`).
@@ -272,21 +280,17 @@ class Tissue:
         incidence[b[b < k], np.flatnonzero(b < k)] += 1.0
         incidence[a[a < k], np.flatnonzero(a < k)] -= 1.0
         placed = local[order]
-        fixed_end = np.where((b >= k)[:, None], placed[b], 0.0) \
-            - np.where((a >= k)[:, None], placed[a], 0.0)
         return cls(names, bundles, placed[:k], placed[k:], a, b, seg_fibre,
                    slack_m, stiffness_n, transition, incidence.T @ placed[:k],
-                   incidence.sum(axis=0), fixed_end)
+                   incidence.sum(axis=0), _fixed_ends(placed, k, a, b))
 
     def placed(self, fixed_world: Floats) -> Tissue:
         """The same fibres with the points fixed in the reference frame at `fixed_world`
         ((n - k, 3), in this tissue's order): where the bodies holding them rest now."""
-        k = len(self.moving_local)
-        a, b = self.seg_a, self.seg_b
         points = np.concatenate([self.moving_local, fixed_world])
-        fixed_end = np.where((b >= k)[:, None], points[b], 0.0) \
-            - np.where((a >= k)[:, None], points[a], 0.0)
-        return replace(self, fixed_world=fixed_world, seg_fixed=fixed_end)
+        return replace(self, fixed_world=fixed_world,
+                       seg_fixed=_fixed_ends(points, len(self.moving_local), self.seg_a,
+                                             self.seg_b))
 
     def world(self, pose: Pose) -> Floats:
         """(n, 3) every point in the reference frame with the body at `pose` (the moving
