@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 import hashlib
+import json
 import os
 from pathlib import Path
 import subprocess
@@ -172,8 +173,8 @@ def test_write_default_knee_is_atomic_and_idempotent(tmp_path: Path) -> None:
     out_dir = tmp_path / 'new' / 'knee'                        # created if missing
     paths = synth.write_default_knee(out_dir)
     assert set(paths) == {'femur', 'tibia', 'patella'}
-    assert sorted(p.name for p in out_dir.iterdir()) == ['femur.stl', 'patella.stl',
-                                                         'tibia.stl']   # no temp files left
+    assert sorted(p.name for p in out_dir.iterdir()) == [
+        'femur.stl', synth.GENERATED, 'patella.stl', 'tibia.stl']      # no temp files left
     knee = synth.default_knee()
     for name, path in paths.items():
         assert path == out_dir / f'{name}.stl'
@@ -190,6 +191,51 @@ def test_write_default_knee_is_atomic_and_idempotent(tmp_path: Path) -> None:
     paths['tibia'].write_bytes(b'damaged')                     # a stale file is replaced
     synth.write_default_knee(out_dir)
     assert paths['tibia'].read_bytes() == synth.stl_bytes(knee['tibia'])
+
+
+def _made(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Count the calls that make the default knee's meshes from now on."""
+    calls: list[int] = []
+    make = synth.default_knee
+
+    def counted() -> dict[str, trimesh.Trimesh]:
+        calls.append(1)
+        return make()
+    monkeypatch.setattr(synth, 'default_knee', counted)
+    return calls
+
+
+def test_current_meshes_are_not_made_again(tmp_path: Path,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    paths = synth.write_default_knee(tmp_path)
+    made = _made(monkeypatch)
+    assert synth.write_default_knee(tmp_path) == paths and made == []
+    record = json.loads((tmp_path / synth.GENERATED).read_text())
+    assert record == {'generator': synth.generator_key(), 'sha256': {
+        p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in paths.values()}}
+
+
+@pytest.mark.parametrize('change', ['damaged mesh', 'missing mesh', 'other generator',
+                                    'damaged record', 'missing record'])
+def test_meshes_are_made_again_when_the_record_does_not_hold(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, change: str) -> None:
+    paths = synth.write_default_knee(tmp_path)
+    expected = {name: path.read_bytes() for name, path in paths.items()}
+    record = tmp_path / synth.GENERATED
+    if change == 'damaged mesh':
+        paths['patella'].write_bytes(expected['patella'][:-1] + b'x')
+    elif change == 'missing mesh':
+        paths['femur'].unlink()
+    elif change == 'other generator':
+        monkeypatch.setattr(synth, 'generator_key', lambda: 'other code')
+    elif change == 'damaged record':
+        record.write_text('{"generator": ')
+    else:
+        record.unlink()
+    made = _made(monkeypatch)
+    assert synth.write_default_knee(tmp_path) == paths and made == [1]
+    assert {name: path.read_bytes() for name, path in paths.items()} == expected
+    assert json.loads(record.read_text())['generator'] == synth.generator_key()
 
 
 # ---- neutral placement ---------------------------------------------------------------------
