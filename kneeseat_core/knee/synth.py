@@ -53,8 +53,8 @@ import hashlib
 from importlib import resources
 import json
 import os
-import platform
 from pathlib import Path
+import platform
 
 import numpy as np
 import trimesh
