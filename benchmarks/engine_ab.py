@@ -1,7 +1,7 @@
 """Two builds of the exact travel's engine timed on the same searches, call by call.
 
 Run: `python benchmarks/engine_ab.py --base REV [--knees tka,natural,default]
-[--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1] [--runs 3]`. Compiles the engine
+[--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1] [--runs 3] [--cold]`. Compiles the engine
 (`kneeseat_core/meshes/_sweep.cpp`) of git revision REV (or a file) and of the working tree
 as two modules under other names, with the flags the package builds it with; builds each
 knee's slice in this process (`kneeseat build --workers 1`) and keeps every call the
@@ -11,7 +11,9 @@ one is shared) then slows both alike, and their ratio holds where whole builds t
 after the other differ by a tenth from run to run. Prints whether the two answered every
 call the same, bit for bit, and per run the seconds of each and their ratio (new / base).
 The first, untimed pass builds each engine's views and fills their bounds: the runs time
-the searches themselves, not a view's first filling (a build fills a view per cell).
+the searches themselves, not a view's first filling. With `--cold` each settle's calls
+start from new views instead, as a build's do (a view per cell and body: the push turns
+with the attitude), and a run times the views' making and filling with the searches.
 """
 from __future__ import annotations
 
@@ -127,11 +129,39 @@ def compare(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine],
     return differ, seconds
 
 
+def compare_cold(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine],
+                 runs: int) -> tuple[int, list[list[float]]]:
+    """As `compare`, each settle's calls from new views (a settle is the calls of one
+    `SweepPair`): the views' making and filling timed with the searches, each settle's
+    calls made by one engine and then the other, which goes first alternating."""
+    settles: list[list[tuple[Any, tuple[Any, ...]]]] = []
+    for pair, args in calls:
+        if not settles or settles[-1][0][0] is not pair:
+            settles.append([])
+        settles[-1].append((pair, args))
+    differ = 0
+    seconds = [[0.0, 0.0] for _ in range(runs)]
+    for run in range(runs):
+        for n, settle in enumerate(settles):
+            answers: list[list[Any]] = [[], []]
+            for k in ((0, 1) if (n + run) % 2 == 0 else (1, 0)):
+                engine = engines[k]
+                engine.views.clear()      # gone views' arrays go to their body's spares
+                started = time.perf_counter()
+                for pair, args in settle:
+                    answers[k].append(engine.module.measure(*engine.call(pair, args)))
+                seconds[run][k] += time.perf_counter() - started
+            differ += run == 0 and answers[0] != answers[1]
+    return differ, seconds
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--base', required=True,
                         help='git revision (or file) of the engine to compare with')
     parser.add_argument('--runs', type=int, default=3, help='replays of every call')
+    parser.add_argument('--cold', action='store_true',
+                        help="each settle's calls from new views, their filling timed too")
     add_slice_options(parser)
     args = parser.parse_args()
     print(describe_machine())
@@ -141,9 +171,10 @@ def main() -> int:
                    compile_engine((REPO / ENGINE).read_text(), 'engine_new', where)]
         for knee in slice_knees(args):
             calls = recorded_calls(knee, args, where / f'{knee}.npz')
-            differ, seconds = compare(calls, [Engine(m) for m in modules], args.runs)
+            differ, seconds = (compare_cold if args.cold else compare)(
+                calls, [Engine(m) for m in modules], args.runs)
             same = 'the same answers bit for bit' if differ == 0 else \
-                f'{differ} calls answered differently'
+                f'{differ} {"settles" if args.cold else "calls"} answered differently'
             print(f'{knee}: {len(calls)} calls, {same}; seconds base / new (ratio): ' +
                   ', '.join(f'{b:.3f} / {n:.3f} ({n / b:.3f})' for b, n in seconds))
     return 0
