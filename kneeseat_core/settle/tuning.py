@@ -23,7 +23,9 @@ class SettleTuning:
             (the travel is exact: the pose is free by this much, python-fcl agrees).
         window_res: a pose's features are those closing within this far beyond contact
             (what the climb uses of them is within `contact_tol_res`: this covers it, with a
-            margin no rounding crosses, and the search prunes everything beyond)...
+            margin of a hundredth of a resolution that no rounding crosses, and the search
+            prunes everything beyond; a place that becomes the pool is measured again with
+            the pool's window)...
         pool_window_res: ...and the witnesses' pool those within this, taken at the first
             contact and again wherever the climb has moved (at least `window_res`: the pool
             only names the pairs a refutation asks, which is exact whichever it asks, so
@@ -75,7 +77,7 @@ class SettleTuning:
     """
 
     standoff_res: float = 1.0 / 1024.0
-    window_res: float = 0.3
+    window_res: float = 0.26
     pool_window_res: float = 0.6
     pool_reach_moves: float = 4.0
     contact_tol_res: float = 0.25
