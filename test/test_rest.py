@@ -13,6 +13,7 @@ search code with the settle) gains no more than the resolution from the reported
 from __future__ import annotations
 
 import ast
+from dataclasses import replace
 import itertools
 import json
 import math
@@ -27,10 +28,11 @@ from kneeseat_core.cli import main
 from kneeseat_core.meshes import CollisionPair, RigidBody, SweepPair
 from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix, rotation_about
 from kneeseat_core.referee import Envelope, Referee
+import kneeseat_core.settle as settle_package
 from kneeseat_core.settle import settle, SettleParams, SettleResult
 from kneeseat_core.settle.climb import _Climb
 from kneeseat_core.settle.search import Search
-from kneeseat_core.settle.tuning import TUNING
+from kneeseat_core.settle.tuning import SettleTuning, TUNING
 from kneeseat_core.status import Status
 import settle_cases as sc
 import shapes
@@ -198,6 +200,32 @@ def test_far_from_an_envelope_that_holds_every_move_keeps_its_length() -> None:
     for scale in (TUNING.least_moves, TUNING.near_first_moves, 1.0, TUNING.far_moves):
         moves = scale * climb.finest * climb.directions
         assert np.array_equal(climb._inside(moves, scale * climb.finest), moves), scale
+
+
+def test_the_climbs_windows_must_hold_what_it_uses() -> None:
+    """A place's window below the contact tolerance (plus its margin), or a pool narrower
+    than a place's window, would drop features the climb uses: such a tuning is refused."""
+    with pytest.raises(ValueError, match='window_res'):
+        SettleTuning(window_res=TUNING.contact_tol_res)
+    with pytest.raises(ValueError, match='pool_window_res'):
+        SettleTuning(pool_window_res=0.5 * TUNING.window_res)
+    assert TUNING.window_res > TUNING.contact_tol_res
+
+
+@pytest.mark.parametrize('name', ['sphere_bowl', 'cylinder_groove', 'cylinder_v90'])
+def test_a_wider_place_window_settles_the_same_bit_for_bit(
+        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A place's features beyond the contact tolerance are never used (a place that
+    becomes the witnesses' pool is measured again with the pool's window), so the place's
+    window moves the cost only: with it as wide as the pool's, every settle is the same."""
+    var = sc.variant(name, 'tilted')
+    narrow = settle(var.fixed, var.moving, var.start, params(var))
+    monkeypatch.setattr(settle_package, 'TUNING',
+                        replace(TUNING, window_res=TUNING.pool_window_res))
+    wide = settle(var.fixed, var.moving, var.start, params(var))
+    assert narrow.converged and wide.converged, (narrow.reason, wide.reason)
+    assert np.array_equal(narrow.pose, wide.pose)
+    assert narrow.iterations == wide.iterations and narrow.travels == wide.travels
 
 
 def test_a_dome_is_left_with_lost_contact() -> None:

@@ -100,5 +100,19 @@ class SettleTuning:
     hopeless_res: tuple[float, ...] = (1.0, 1.0, 5.0)
     finest_tol_res: float = 1.0 / 1024.0
 
+    def __post_init__(self) -> None:
+        # the windows hold what the climb uses: the near-active features within the
+        # contact tolerance, and the pool at least a place's features
+        if not self.window_res - self.contact_tol_res >= _WINDOW_MARGIN_RES:
+            raise ValueError(f'window_res ({self.window_res}) must exceed contact_tol_res '
+                             f'({self.contact_tol_res}) by at least {_WINDOW_MARGIN_RES}')
+        if not self.pool_window_res >= self.window_res:
+            raise ValueError(f'pool_window_res ({self.pool_window_res}) must be at least '
+                             f'window_res ({self.window_res})')
+
+
+# How far a place's window must reach beyond the contact tolerance (resolutions): 10 nm at
+# the patent's resolution, far above any rounding of the gaps, far below what it costs.
+_WINDOW_MARGIN_RES = 1e-3
 
 TUNING = SettleTuning()
