@@ -215,6 +215,25 @@ def test_current_meshes_are_not_made_again(tmp_path: Path,
         p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in paths.values()}}
 
 
+def test_current_meshes_need_no_record_where_it_cannot_be_written(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Meshes already current in a directory that takes no new file (a cache one may only
+    read, filled by an older version): they are used as they are, without the record."""
+    paths = synth.write_default_knee(tmp_path)
+    (tmp_path / synth.GENERATED).unlink()
+    stamps = {name: path.stat().st_mtime_ns for name, path in paths.items()}
+    write = synth.write_bytes
+
+    def refuse(path: Path, data: bytes) -> None:
+        if path.name == synth.GENERATED:
+            raise PermissionError(13, 'Permission denied', str(path))
+        write(path, data)
+    monkeypatch.setattr(synth, 'write_bytes', refuse)
+    assert synth.write_default_knee(tmp_path) == paths
+    assert {name: path.stat().st_mtime_ns for name, path in paths.items()} == stamps
+    assert not (tmp_path / synth.GENERATED).exists()
+
+
 @pytest.mark.parametrize('change', ['damaged mesh', 'missing mesh', 'other generator',
                                     'damaged record', 'missing record'])
 def test_meshes_are_made_again_when_the_record_does_not_hold(

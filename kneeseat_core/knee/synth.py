@@ -396,7 +396,8 @@ def generator_key() -> str:
 
 def write_default_knee(out_dir: Path) -> dict[str, Path]:
     """Write femur.stl, tibia.stl, patella.stl (binary STL, metres) into `out_dir`, and
-    beside them `GENERATED` (what made them, and their SHA-256).
+    beside them `GENERATED` (what made them, and their SHA-256) where the directory takes
+    it (meshes already current in one that does not are used as they are).
 
     Each file is written atomically (`kneeseat_core.files.atomic_write`), so a crash never
     leaves a half mesh; `out_dir` is created if missing. Idempotent: the same bytes
@@ -420,8 +421,11 @@ def write_default_knee(out_dir: Path) -> dict[str, Path]:
         digests[path.name] = hashlib.sha256(data).hexdigest()
         if not (path.is_file() and _same_file(path, data)):
             write_bytes(path, data)
-    write_bytes(record, json.dumps({'generator': generator_key(), 'sha256': digests},
-                                   indent=1, sort_keys=True).encode())
+    try:
+        write_bytes(record, json.dumps({'generator': generator_key(), 'sha256': digests},
+                                       indent=1, sort_keys=True).encode())
+    except OSError:
+        pass    # the meshes are current (a cache one may only read): made again next time
     return paths
 
 
