@@ -412,14 +412,15 @@ def write_default_knee(out_dir: Path) -> dict[str, Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {name: out_dir / f'{name}.stl' for name in ('femur', 'tibia', 'patella')}
     record = out_dir / GENERATED
-    if _recorded(record) == {path.name: _sha256_or_none(path) for path in paths.values()}:
+    on_disk = {path.name: _sha256_or_none(path) for path in paths.values()}
+    if _recorded(record) == on_disk:
         return paths
     digests: dict[str, str] = {}
     for name, mesh in default_knee().items():
         path = paths[name]
         data = stl_bytes(mesh)
         digests[path.name] = hashlib.sha256(data).hexdigest()
-        if not (path.is_file() and _same_file(path, data)):
+        if on_disk[path.name] != digests[path.name]:
             write_bytes(path, data)
     try:
         write_bytes(record, json.dumps({'generator': generator_key(), 'sha256': digests},
@@ -447,13 +448,6 @@ def _sha256_or_none(path: Path) -> str | None:
         return file_sha256(path)
     except OSError:
         return None
-
-
-def _same_file(path: Path, data: bytes) -> bool:
-    """Whether `path` already holds exactly `data` (compared by size, then SHA-256)."""
-    if path.stat().st_size != len(data):
-        return False
-    return file_sha256(path) == hashlib.sha256(data).hexdigest()
 
 
 DEFAULT_CONFIG = 'default_knee.yaml'
