@@ -13,6 +13,10 @@ from dataclasses import dataclass
 
 __all__ = ['SettleTuning', 'TUNING']
 
+# How far a place's window must reach beyond the contact tolerance (resolutions): 10 nm at
+# the patent's resolution, far above any rounding of the gaps, far below what it costs.
+_WINDOW_MARGIN_RES = 1e-3
+
 
 @dataclass(frozen=True, slots=True)
 class SettleTuning:
@@ -110,9 +114,5 @@ class SettleTuning:
             raise ValueError(f'pool_window_res ({self.pool_window_res}) must be at least '
                              f'window_res ({self.window_res})')
 
-
-# How far a place's window must reach beyond the contact tolerance (resolutions): 10 nm at
-# the patent's resolution, far above any rounding of the gaps, far below what it costs.
-_WINDOW_MARGIN_RES = 1e-3
 
 TUNING = SettleTuning()
