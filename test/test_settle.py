@@ -29,6 +29,7 @@ from kneeseat_core.settle import settle, SettleParams, SettleResult
 from kneeseat_core.settle.objective import objective_for
 from kneeseat_core.settle.planner import Planner
 from kneeseat_core.settle.search import Search
+from kneeseat_core.settle.tuning import TUNING
 import settle_cases as sc
 
 RESOLUTION_M = 1e-4                          # the default SettleParams().resolution_m
@@ -149,6 +150,33 @@ def test_settling_again_does_not_move() -> None:
     cos = (np.trace(first.pose[:3, :3].T @ again.pose[:3, :3]) - 1.0) / 2.0
     arc = math.acos(min(1.0, cos)) * farthest_radius(var, first.pose)
     assert arc <= 2.0 * RESOLUTION_M
+
+
+def test_python_fcl_judges_a_start_that_touches_or_nearly() -> None:
+    """D7: a start the exact travel finds farther than the standoff from touching is free
+    without python-fcl (its one query is the end pose's); one nearer, or in collision, is
+    asked of python-fcl, which backs the colliding one out, and all three settle to the
+    same rest."""
+    var = sc.variant('sphere_bowl', 'plain')
+    params = SettleParams(push=tuple(float(v) for v in var.push))
+    push = var.push / np.linalg.norm(var.push)
+    standoff = TUNING.standoff_res * params.resolution_m
+    far = settle(var.fixed, var.moving, var.start, params)
+    assert far.converged and far.fcl_checks == 1 and far.backed_out_m == 0.0
+    near_start = far.pose.copy()         # a rest stands the standoff short of touching
+    near_start[:3, 3] += 0.5 * standoff * push
+    pair = CollisionPair(var.fixed, var.moving)
+    assert not pair.collides(near_start)
+    near = settle(var.fixed, var.moving, near_start, params)
+    assert near.fcl_checks == 2 and near.backed_out_m == 0.0
+    deep_start = far.pose.copy()
+    deep_start[:3, 3] += 2e-3 * push
+    assert pair.collides(deep_start)
+    deep = settle(var.fixed, var.moving, deep_start, params)
+    assert deep.fcl_checks > 2 and deep.backed_out_m >= 2e-3 - params.resolution_m
+    for result in (near, deep):
+        assert result.converged and not pair.collides(result.pose)
+        assert np.linalg.norm(result.pose[:3, 3] - far.pose[:3, 3]) <= POSITION_TOL_M
 
 
 def test_the_pairs_touching_at_rest_seed_a_settle_without_changing_its_answer() -> None:

@@ -40,8 +40,10 @@ named where it is made:
      Where the envelope holds (`envelope_holds`, a knee config's soft-tissue stand-in) the
      climb stays inside it and a rest on its boundary is reported as constrained.
   D7 python-fcl judges: a start in collision is backed out along -Δ by python-fcl's
-     booleans, and the end pose is asked of python-fcl (one query); one it finds in
-     collision is backed out too (`SettleResult.judged_back_m`).
+     booleans (asked of every start the exact travel finds in collision or within the
+     standoff of touching: one farther from it is free, as every pose the climb stands
+     on), and the end pose is asked of python-fcl (one query); one it finds in collision
+     is backed out too (`SettleResult.judged_back_m`).
 The independent check of "at rest" is `kneeseat_core.referee.judge` (`kneeseat verify`). Why
 each departure is made, and what the letter does on real meshes: docs/design.md, "The
 settle".
@@ -98,12 +100,12 @@ def settle(fixed: RigidBody, moving: RigidBody, start: Pose, params: SettleParam
     start = np.asarray(start, dtype=np.float64)
     search = Search(CollisionPair(fixed, moving), start, params,
                     start if anchor is None else np.asarray(anchor, dtype=np.float64))
-    pose = search.back_out(start)
     if params.method == 'patent':
+        pose = search.back_out(start)
         limit = search.travel_limit(pose)
         bracket = search.drop(pose, params.resolution_m, limit)
         if bracket is None:
             raise NoContactError(limit)
         return run_patent(search, bracket)
     search.sweep = SweepPair(fixed, moving, search.push)
-    return run_climb(search, pose, tissue, TUNING, seeds, near_rest)
+    return run_climb(search, start, tissue, TUNING, seeds, near_rest)

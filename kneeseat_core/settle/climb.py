@@ -390,15 +390,24 @@ class _Climb:
 def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
               tuning: SettleTuning = TUNING, seeds: Ints | None = None,
               near_rest: bool = False) -> SettleResult:
-    """Climb from the free pose `start` (its contact along Δ found first, its search
-    starting from the pairs of triangles `seeds` where given; `near_rest`: a neighbouring
-    cell's rest carried over, whose first moves are short) to a rest pose (module
-    docstring), of the travel, or of the load's work less the energy of the `tissue`
-    acting on the body (`kneeseat_core.settle.objective`)."""
+    """Climb from `start` (its contact along Δ found first, its search starting from the
+    pairs of triangles `seeds` where given; `near_rest`: a neighbouring cell's rest
+    carried over, whose first moves are short) to a rest pose (module docstring), of the
+    travel, or of the load's work less the energy of the `tissue` acting on the body
+    (`kneeseat_core.settle.objective`). A start that the exact travel finds in collision,
+    or within the standoff of touching, is judged by python-fcl (`Search.back_out`) and
+    backed out along -Δ where it collides; one farther from touching is free."""
     p = search.params
     assert search.sweep is not None
     climb = _Climb(search, search.sweep, tuning, tissue, near_rest)
     first = climb.arrive(start, 0.0, tuning.pool_window_res, seeds=seeds)
+    if not isinstance(first, _Place) or first.touch.travel < climb.standoff:
+        # python-fcl decides where the start touches, or nearly (D7); where it backs the
+        # start out, the contact is found again from there
+        free = search.back_out(start)
+        if free is not start:
+            start = free
+            first = climb.arrive(start, 0.0, tuning.pool_window_res, seeds=seeds)
     if not isinstance(first, _Place):
         raise NoContactError(search.travel_limit(start))
     climb.settle_in(first)
