@@ -11,6 +11,12 @@ linear program (`_simplex.best_move`, built and solved). What is left of the set
 is Python and numpy around them. Prints, per knee, milliseconds a settle for each part, its
 calls a settle and its share. Timing a call costs about a microsecond, so the Python share
 is overstated by about that much per call (the calls a settle are printed).
+
+Then the same settles' time by what the climb was doing (`kneeseat_core.settle.climb`,
+compiled parts and Python together): finding the first contact (the search from the start,
+with the pool's window), the steps that moved to a place that gains, the steps that found
+nothing at their scale, the proof of rest, and the rest of the settle (setting it up,
+python-fcl's judge of the end pose, the result).
 """
 from __future__ import annotations
 
@@ -25,7 +31,7 @@ from typing import Any
 import fcl
 
 from kneeseat_core.meshes import _sweep
-from kneeseat_core.settle import _simplex
+from kneeseat_core.settle import _simplex, climb
 from kneeseat_core.settle.planner import Planner
 from kneeseat_core.sweep import chains
 from machine import describe_machine
@@ -40,12 +46,22 @@ PARTS: dict[str, list[tuple[Any, str]]] = {
 }
 
 
+# what the climb does, each timed around its own method of `climb._Climb`
+STAGES = ('first contact', 'steps that move', 'steps that find nothing', 'proof of rest')
+
+
 class Clock:
-    """Seconds and calls per part, filled by the wrappers `timed` installs."""
+    """Seconds and calls per part and per stage, filled by the wrappers `timed` and
+    `staged` install."""
 
     def __init__(self) -> None:
-        self.seconds = {part: 0.0 for part in (*PARTS, 'settles')}
+        self.seconds = {part: 0.0 for part in (*PARTS, *STAGES, 'settles')}
         self.calls = {part: 0 for part in self.seconds}
+
+    def add(self, part: str, started: float) -> None:
+        """A call of `part` that started at `started` (perf_counter) has ended."""
+        self.seconds[part] += time.perf_counter() - started
+        self.calls[part] += 1
 
     def timed(self, part: str, fn: Callable[..., Any]) -> Callable[..., Any]:
         """`fn`, its time and calls added to `part`."""
@@ -54,21 +70,43 @@ class Clock:
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.seconds[part] += time.perf_counter() - started
-                self.calls[part] += 1
+                self.add(part, started)
+        return wrapper
+
+    def staged(self, name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        """The climb's method `name` (`fn`), its time added to the stage it served: an
+        `arrive` before the climb has a place is its first contact, a `step` moved where
+        it left the climb at another place."""
+        def wrapper(state: Any, *args: Any, **kwargs: Any) -> Any:
+            before = state.here
+            started = time.perf_counter()
+            try:
+                return fn(state, *args, **kwargs)
+            finally:
+                if name == 'step':
+                    self.add('steps that move' if state.here is not before
+                             else 'steps that find nothing', started)
+                elif name == 'prove':
+                    self.add('proof of rest', started)
+                elif before is None:
+                    self.add('first contact', started)
         return wrapper
 
 
 def measure(knee: str, args: argparse.Namespace, out: Path) -> Clock:
-    """Build `knee`'s slice (`args`) in this process with every compiled part timed."""
+    """Build `knee`'s slice (`args`) in this process with every compiled part and every
+    stage of the climb timed."""
     clock = Clock()
     timed = {**PARTS, 'settles': [(chains, 'settle')]}
+    stages = [(climb._Climb, name) for name in ('arrive', 'step', 'prove')]
     originals = [(owner, name, getattr(owner, name))
-                 for calls in timed.values() for owner, name in calls]
+                 for calls in (*timed.values(), stages) for owner, name in calls]
     try:
         for part, calls in timed.items():
             for owner, name in calls:
                 setattr(owner, name, clock.timed(part, getattr(owner, name)))
+        for owner, name in stages:
+            setattr(owner, name, clock.staged(name, getattr(owner, name)))
         build_slice(knee, args, out)
     finally:
         for owner, name, fn in originals:
@@ -90,6 +128,17 @@ def report(knee: str, clock: Clock) -> None:
     calls = sum(clock.calls[part] for part in PARTS) / settles
     print(f'  {"Python, numpy":15s} {1e3 * rest / settles:6.2f} ms  (around {calls:.1f} calls)'
           f'  {100 * rest / total:5.1f} %')
+    print('  by what the climb was doing:')
+    rest = total
+    for stage in STAGES:
+        spent = clock.seconds[stage]
+        rest -= spent
+        each = 1e3 * spent / max(clock.calls[stage], 1)
+        print(f'    {stage:24s} {1e3 * spent / settles:6.2f} ms  '
+              f'{clock.calls[stage] / settles:5.1f} a settle at {each:5.2f} ms  '
+              f'{100 * spent / total:5.1f} %')
+    print(f'    {"the rest of the settle":24s} {1e3 * rest / settles:6.2f} ms  (set-up, the end '
+          f'pose judged, the result)  {100 * rest / total:5.1f} %')
 
 
 def main() -> int:
