@@ -404,9 +404,8 @@ def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
     if not isinstance(first, _Place) or first.touch.travel < climb.standoff:
         # python-fcl decides where the start touches, or nearly (D7); where it backs the
         # start out, the contact is found again from there
-        free = search.back_out(start)
-        if free is not start:
-            start = free
+        start = search.back_out(start)
+        if search.backed_out_m > 0.0:
             first = climb.arrive(start, 0.0, tuning.pool_window_res, seeds=seeds)
     if not isinstance(first, _Place):
         raise NoContactError(search.travel_limit(start))
