@@ -21,7 +21,8 @@ setup(
     # climb's small linear program (kneeseat_core/settle/model.py) and the moves it tries,
     # planned with the ligaments weighed (kneeseat_core/settle/planner.py)
     ext_modules=[Extension(name, [source], extra_compile_args=['-O3', '-std=c++17'],
-                           depends=['kneeseat_core/_buffers.h', 'kneeseat_core/_tissue.h'],
+                           depends=['kneeseat_core/_buffers.h', 'kneeseat_core/_tissue.h',
+                                    'kneeseat_core/_feature.h'],
                            language='c++')
                  for name, source in (('kneeseat_core.meshes._sweep',
                                        'kneeseat_core/meshes/_sweep.cpp'),

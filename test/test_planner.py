@@ -4,6 +4,7 @@ needs, the ligaments weighed at each, the objective's value and first-order term
 travel's model), and the compiled best move against scipy's linear programming."""
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -168,7 +169,8 @@ def test_a_model_keeps_the_features_within_reach_with_their_slopes(
     """The model's features and slopes against numpy: each slope is the rate of the
     feature's gap under a move, found here by moving the body's point (a slide, a spin
     about the axis through the centroid parallel to the push) and taking the change of the
-    gap along the push onto the feature's plane."""
+    gap along the push onto the feature's plane; the features as measured and seen from a
+    place further along the push (their gaps less, their points moved with the body)."""
     rng = np.random.default_rng(20261207)
     var = sc.variant('key_pocket', 'rotated')
     params = SettleParams(push=tuple(float(v) for v in var.push), locked_slide=locked)
@@ -179,11 +181,14 @@ def test_a_model_keeps_the_features_within_reach_with_their_slopes(
     normals = search.push + rng.normal(0.0, 0.6, (k, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     normals[normals @ search.push < 0] *= -1.0
-    touch = Touch(0.0, False, rng.uniform(0.0, 5e-5, k), normals, rng.normal(0.0, 0.02, (k, 3)),
-                  rng.uniform(0.0, 1e-4, k), np.zeros(k, dtype=np.int64),
-                  rng.integers(0, 100, (k, 2)))
+    measured = Touch.of(0.0, False, rng.uniform(0.0, 5e-5, k), normals,
+                        rng.normal(0.0, 0.02, (k, 3)), rng.uniform(0.0, 1e-4, k),
+                        np.zeros(k, dtype=np.int64), rng.integers(0, 100, (k, 2)))
     centre = rng.normal(0.0, 0.01, 3)
-    for within, room in ((np.inf, 0.0), (2e-5, 3e-5), (2e-5, 1.0)):
+    # as measured, and seen from a place 10 um further along the push (the climb's)
+    for touch, (within, room) in itertools.product(
+            (measured, measured.lifted(1e-5, search.push)),
+            ((np.inf, 0.0), (2e-5, 3e-5), (2e-5, 1.0))):
         model = planner.model(touch, centre, within, room)
         near = touch.gaps <= within
         if (near & (touch.rooms >= room)).any():
@@ -280,9 +285,12 @@ def test_the_compiled_planner_refuses_bad_arrays_without_crashing() -> None:
     with pytest.raises(ValueError):
         _moves.Planner(e[2], e[0], e[1], np.ones(3), np.zeros(3), 0.0, 0.0, 3.0, False, 1.0,
                        None, None)
+    with pytest.raises(ValueError):      # not whole feature records
+        good.model(bytes(100), 0.0, np.zeros(3), 1.0, 0.0)
+    with pytest.raises(TypeError):
+        good.model('x', 0.0, np.zeros(3), 1.0, 0.0)
     with pytest.raises(ValueError):
-        good.model(np.zeros(2), np.zeros((2, 3)), np.zeros((3, 3)), np.zeros(2),
-                   np.zeros((2, 2), dtype=np.int64), np.zeros(3), 1.0, 0.0)
+        good.model(bytes(88), 0.0, np.zeros(2), 1.0, 0.0)
 
 
 @pytest.mark.parametrize('seed', range(6))

@@ -37,6 +37,7 @@
 #include <vector>
 
 #include "../_buffers.h"
+#include "../_feature.h"
 
 namespace {
 
@@ -374,10 +375,7 @@ __attribute__((noinline)) void View::fill(int index) {
 // 1 a fixed vertex on a moving face, 2 an edge across an edge) with the two triangles.
 // `room`: how far the moving body may slide across d before the feature stops being one
 // (the vertex leaves the other triangle's shadow, the crossing runs off an edge).
-struct Feature {
-    double gap, normal[3], point[3], room;
-    int64_t kind, moving_face, fixed_face;
-};
+using kneeseat::Feature;
 
 // distance from q to the nearest edge line of triangle (p0, p1, p2) in the plane
 inline double edge_distance(const double *p0, const double *p1, const double *p2, double qx, double qy) {

@@ -35,7 +35,8 @@ from kneeseat_core.typed import Floats, Ints, Pose
 from . import _sweep
 from .collision import RigidBody
 
-__all__ = ['SweepBody', 'SweepPair', 'Touch', 'sweep_body', 'facing', 'PLACE', 'SHORT', 'LOST']
+__all__ = ['SweepBody', 'SweepPair', 'Touch', 'FEATURE', 'sweep_body', 'facing', 'PLACE', 'SHORT',
+           'LOST']
 
 # A view of a body is kept per direction, the direction rounded to this (rad): the moving
 # body's direction in its own frame stays put while it spins about Δ, up to rounding. The
@@ -50,11 +51,11 @@ _VIEWS_KEPT = 8
 # refuted), or a pose with no contact along the push.
 PLACE, SHORT, LOST = 0, 1, 2
 
-# The layout of one feature from `_sweep.contacts` (a C struct: gap, normal, point, kind,
-# moving face, fixed face).
-_FEATURE = np.dtype([('gap', '<f8'), ('normal', '<f8', 3), ('point', '<f8', 3),
-                     ('room', '<f8'), ('kind', '<i8'), ('moving_face', '<i8'),
-                     ('fixed_face', '<i8')])
+# The layout of one feature from `_sweep.contacts` (the C struct of _feature.h: gap, normal,
+# point, room, kind, moving face, fixed face).
+FEATURE = np.dtype([('gap', '<f8'), ('normal', '<f8', 3), ('point', '<f8', 3),
+                    ('room', '<f8'), ('kind', '<i8'), ('moving_face', '<i8'),
+                    ('fixed_face', '<i8')])
 
 
 def facing(mesh: trimesh.Trimesh) -> np.ndarray:
@@ -144,16 +145,66 @@ def sweep_body(body: RigidBody) -> SweepBody:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Touch:
-    """The travel from one pose and the features that close within a window beyond it."""
+    """The travel from one pose and the features that close within a window beyond it: the
+    engine's records (`FEATURE`), read as arrays only where asked (the climb hands them to
+    the planner whole), and seen from the pose `rise` further along Δ (`push`) than the one
+    they were measured from (`lifted`: a place stands there, short of touching)."""
 
-    travel: float           # m along Δ from the pose (inf: no contact; -inf: buried)
+    travel: float           # m along Δ from the pose measured (inf: no contact; -inf: buried)
     buried: bool            # the pose lowered by `behind` is in collision: lower further
-    gaps: Floats            # (k,) m along Δ from the pose, each feature's
-    normals: Floats         # (k, 3) unit, n . Δ >= 0: a gap changes by -n . dp / n . Δ
-    points: Floats          # (k, 3) the moving body's point at each feature, fixed frame
-    rooms: Floats           # (k,) m: how far a slide keeps each feature one (its domain)
-    kinds: Ints             # (k,) 0: moving vertex on fixed face, 1: the reverse, 2: edges
-    faces: Ints             # (k, 2) the triangles (moving, fixed) of each feature
+    features: np.ndarray    # (k,) `FEATURE` records, as the engine found them
+    rise: float = 0.0       # m along Δ from the pose measured to the pose seen from
+    push: Floats = field(default_factory=lambda: np.zeros(3))   # (3,) Δ, where rise is not 0
+
+    @classmethod
+    def of(cls, travel: float, buried: bool, gaps: Floats, normals: Floats, points: Floats,
+           rooms: Floats, kinds: Ints, faces: Ints) -> Touch:
+        """A touch from its features' arrays (k,), (k, 3), (k, 3), (k,), (k,), (k, 2)."""
+        features = np.zeros(len(gaps), dtype=FEATURE)
+        features['gap'], features['normal'], features['point'] = gaps, normals, points
+        features['room'], features['kind'] = rooms, kinds
+        features['moving_face'], features['fixed_face'] = faces[:, 0], faces[:, 1]
+        return cls(travel, buried, features)
+
+    def lifted(self, rise: float, push: Floats) -> Touch:
+        """The same features seen from the pose measured moved `rise` along `push` (Δ)."""
+        return Touch(self.travel, self.buried, self.features, rise, push)
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    @property
+    def gaps(self) -> Floats:
+        """(k,) m along Δ from the pose seen from, each feature's."""
+        out: Floats = self.features['gap'] - self.rise
+        return out
+
+    @property
+    def normals(self) -> Floats:
+        """(k, 3) unit, n . Δ >= 0: a gap changes by -n . dp / n . Δ."""
+        return np.ascontiguousarray(self.features['normal'])
+
+    @property
+    def points(self) -> Floats:
+        """(k, 3) the moving body's point at each feature, fixed frame (at the pose seen
+        from)."""
+        out: Floats = self.features['point'] + self.rise * self.push
+        return out
+
+    @property
+    def rooms(self) -> Floats:
+        """(k,) m: how far a slide keeps each feature one (its domain)."""
+        return np.ascontiguousarray(self.features['room'])
+
+    @property
+    def kinds(self) -> Ints:
+        """(k,) 0: moving vertex on fixed face, 1: the reverse, 2: edges."""
+        return np.ascontiguousarray(self.features['kind'])
+
+    @property
+    def faces(self) -> Ints:
+        """(k, 2) the triangles (moving, fixed) of each feature."""
+        return np.column_stack([self.features['moving_face'], self.features['fixed_face']])
 
 
 @dataclass(slots=True, eq=False)
@@ -287,10 +338,7 @@ class SweepPair:
 
 def _touch(travel: float, buried: bool, raw: bytes) -> Touch:
     """The travel and the engine's features (bytes of its `Feature` structs) as a `Touch`."""
-    f = np.frombuffer(raw, dtype=_FEATURE)
-    return Touch(travel, buried, f['gap'].copy(), f['normal'].copy(), f['point'].copy(),
-                 f['room'].copy(), f['kind'].copy(),
-                 np.column_stack([f['moving_face'], f['fixed_face']]))
+    return Touch(travel, buried, np.frombuffer(raw, dtype=FEATURE))
 
 
 def _finite(limit: float) -> float:

@@ -27,6 +27,7 @@
 #include <vector>
 
 #include "../_buffers.h"
+#include "../_feature.h"
 #include "../_tissue.h"
 
 namespace {
@@ -345,51 +346,48 @@ PyObject *planner_plan(PyPlanner *self, PyObject *args) {
                          bytes_of(needed.data(), 8 * t));
 }
 
-// model(gaps (k,), normals (k, 3), points (k, 3), rooms (k,), faces (k, 2) int64, centre
-// (3,), within, room) -> (gaps, slopes (k', 3), faces) as bytes: the travel's first-order
-// model about a pose from its features (kneeseat_core/settle/model.py): those closing
-// within `within` that hold for a slide of at least `room` (all of those within, where
-// none does) and are not steeper than `steepest`. A feature with unit normal n (n . push
-// >= 0) at the moving body's point p changes its gap by -n . dp / n . push under a move
-// that moves p by dp: dp = x0 e1 + x1 e2 + x2 (push x (p - c)) / arm for the move x (c the
-// centroid, the spin's axis through it), so its slopes over x are -(n . e1, n . e2,
-// n . (push x (p - c)) / arm) / n . push, a locked move's zero; one whose slope exceeds
-// `steepest` in any coordinate holds for a sliver of a move (a crossing of two edges
-// nearly parallel seen along the push, a triangle seen edge on) and is left out.
+// model(features, rise, centre (3,), within, room) -> (gaps, slopes (k', 3), faces (k', 2)
+// int64) as bytes: the travel's first-order model about a pose from its features
+// (kneeseat_core/settle/model.py; the engine's records, _feature.h, measured from the pose
+// `rise` short of it along the push: each gap is that much less from the pose, each point
+// that much further along the push): those closing within `within` that hold for a slide
+// of at least `room` (all of those within, where none does) and are not steeper than
+// `steepest`. A feature with unit normal n (n . push >= 0) at the moving body's point p
+// changes its gap by -n . dp / n . push under a move that moves p by dp: dp = x0 e1 + x1
+// e2 + x2 (push x (p - c)) / arm for the move x (c the centroid, the spin's axis through
+// it), so its slopes over x are -(n . e1, n . e2, n . (push x (p - c)) / arm) / n . push, a
+// locked move's zero; one whose slope exceeds `steepest` in any coordinate holds for a
+// sliver of a move (a crossing of two edges nearly parallel seen along the push, a triangle
+// seen edge on) and is left out.
 PyObject *planner_model(PyPlanner *self, PyObject *args) {
-    PyObject *obj[6];
-    double within, room;
-    if (!ready(self) || !PyArg_ParseTuple(args, "OOOOOOdd", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5],
-                                          &within, &room))
-        return nullptr;
+    PyObject *fo, *co;
+    double rise, within, room;
+    if (!ready(self) || !PyArg_ParseTuple(args, "OdOdd", &fo, &rise, &co, &within, &room)) return nullptr;
     const Planner &p = *self->planner;
     double centre[3];
-    if (!read_doubles(obj[5], 3, centre, "centre")) return nullptr;
-    Py_buffer b[5];
-    Py_ssize_t k = 0, rows;
-    int held = 0;
-    bool ok = take_rows(obj[0], b[0], 1, k, "gaps") && ++held;
-    ok = ok && take_rows(obj[1], b[1], 3, rows, "normals") && ++held && rows == k;
-    ok = ok && take_rows(obj[2], b[2], 3, rows, "points") && ++held && rows == k;
-    ok = ok && take_rows(obj[3], b[3], 1, rows, "rooms") && ++held && rows == k;
-    ok = ok && kneeseat::get_buffer(obj[4], &b[4], "q", 8, "faces", PyExc_ValueError) && ++held &&
-         b[4].len == 16 * k;
-    if (!ok) {
-        for (int i = 0; i < held; ++i) PyBuffer_Release(&b[i]);
-        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "Planner.model: features of one count k");
+    if (!read_doubles(co, 3, centre, "centre")) return nullptr;
+    Py_buffer b;
+    if (PyObject_GetBuffer(fo, &b, PyBUF_C_CONTIGUOUS) < 0) return nullptr;
+    if (b.len % static_cast<Py_ssize_t>(sizeof(kneeseat::Feature)) != 0) {
+        PyBuffer_Release(&b);
+        PyErr_SetString(PyExc_ValueError, "Planner.model: features must be whole feature records");
         return nullptr;
     }
-    const double *gaps = static_cast<const double *>(b[0].buf), *normals = static_cast<const double *>(b[1].buf),
-                 *points = static_cast<const double *>(b[2].buf), *rooms = static_cast<const double *>(b[3].buf);
-    const int64_t *faces = static_cast<const int64_t *>(b[4].buf);
+    const Py_ssize_t k = b.len / static_cast<Py_ssize_t>(sizeof(kneeseat::Feature));
+    const kneeseat::Feature *features = static_cast<const kneeseat::Feature *>(b.buf);
     // a feature that holds for the room if any within does
     bool roomy = false;
-    for (Py_ssize_t j = 0; j < k && !roomy; ++j) roomy = gaps[j] <= within && rooms[j] >= room;
+    for (Py_ssize_t j = 0; j < k && !roomy; ++j)
+        roomy = features[j].gap - rise <= within && features[j].room >= room;
     std::vector<double> out_gaps, out_slopes;
     std::vector<int64_t> out_faces;
     for (Py_ssize_t j = 0; j < k; ++j) {
-        if (!(gaps[j] <= within) || (roomy && !(rooms[j] >= room))) continue;
-        const double *n = normals + 3 * j, *q = points + 3 * j;
+        const kneeseat::Feature &f = features[j];
+        const double gap = f.gap - rise;
+        if (!(gap <= within) || (roomy && !(f.room >= room))) continue;
+        const double *n = f.normal;
+        const double q[3] = {f.point[0] + rise * p.push[0], f.point[1] + rise * p.push[1],
+                             f.point[2] + rise * p.push[2]};
         const double d[3] = {q[0] - centre[0], q[1] - centre[1], q[2] - centre[2]};
         const double lever[3] = {(p.push[1] * d[2] - p.push[2] * d[1]) / p.arm,
                                  (p.push[2] * d[0] - p.push[0] * d[2]) / p.arm,
@@ -400,12 +398,12 @@ PyObject *planner_model(PyPlanner *self, PyObject *args) {
                                   (n[0] * lever[0] + n[1] * lever[1] + n[2] * lever[2]) * p.free[2]};
         const double steepest = std::max({std::fabs(across[0]), std::fabs(across[1]), std::fabs(across[2])});
         if (!(steepest <= p.steepest * along)) continue;
-        out_gaps.push_back(gaps[j]);
+        out_gaps.push_back(gap);
         for (int i = 0; i < 3; ++i) out_slopes.push_back(-across[i] / along);
-        out_faces.push_back(faces[2 * j]);
-        out_faces.push_back(faces[2 * j + 1]);
+        out_faces.push_back(f.moving_face);
+        out_faces.push_back(f.fixed_face);
     }
-    for (int i = 0; i < held; ++i) PyBuffer_Release(&b[i]);
+    PyBuffer_Release(&b);
     const Py_ssize_t kept = static_cast<Py_ssize_t>(out_gaps.size());
     return Py_BuildValue("(NNN)", bytes_of(out_gaps.data(), 8 * kept), bytes_of(out_slopes.data(), 24 * kept),
                          bytes_of(out_faces.data(), 16 * kept));
@@ -451,7 +449,7 @@ PyMethodDef planner_methods[] = {
     {"plan", reinterpret_cast<PyCFunction>(planner_plan), METH_VARARGS,
      "plan(base, moves, gaps, slopes, press, drive, tries, gain, want) -> (order, targets, needed)"},
     {"model", reinterpret_cast<PyCFunction>(planner_model), METH_VARARGS,
-     "model(gaps, normals, points, rooms, faces, centre, within, room) -> (gaps, slopes, faces)"},
+     "model(features, rise, centre, within, room) -> (gaps, slopes, faces)"},
     {"first_order", reinterpret_cast<PyCFunction>(planner_first_order), METH_VARARGS,
      "first_order(pose) -> (press, drive, pull, line): the objective's first-order terms"},
     {"value", reinterpret_cast<PyCFunction>(planner_value), METH_VARARGS,

@@ -157,9 +157,7 @@ class _Climb:
         s = self.search
         rise = touch.travel - self.standoff
         pose = translated(target, rise * s.push)
-        shifted = Touch(touch.travel, False, touch.gaps - rise, touch.normals,
-                        touch.points + rise * s.push, touch.rooms, touch.kinds, touch.faces)
-        return _Place(pose, self.planner.value(pose), state, shifted, wide)
+        return _Place(pose, self.planner.value(pose), state, touch.lifted(rise, s.push), wide)
 
     def state_of(self, pose: Pose) -> Floats:
         """(3,) the lateral state of `pose`: slides along e1, e2 and the arc of its spin,
@@ -214,7 +212,7 @@ class _Climb:
         proof's turn), an end when the climb must stop."""
         assert self.here is not None
         t = self.tuning
-        if len(self.here.touch.gaps) == 0:
+        if len(self.here.touch) == 0:
             return (Status.LOST, LOST_CONTACT)
         scale = self.scale
         # a long move must gain what the proof could see; a short one anything (so that a
@@ -426,8 +424,9 @@ def run_climb(search: Search, start: Pose, tissue: Tissue | None = None,
     assert climb.here is not None
     pose, back = search.judge(climb.here.pose, tuning.finest_tol_res * p.resolution_m)
     touch = climb.here.touch
-    near = touch.gaps <= climb.standoff + tuning.contact_tol_res * p.resolution_m
-    contacts = Contacts(touch.points[near] + (touch.gaps[near] - back)[:, None] * search.push,
+    gaps = touch.gaps
+    near = gaps <= climb.standoff + tuning.contact_tol_res * p.resolution_m
+    contacts = Contacts(touch.points[near] + (gaps[near] - back)[:, None] * search.push,
                         -touch.normals[near])
     return search.result(pose, status, reason, contacts, proof_checks=climb.proof_checks,
                          proof_s=climb.proof_s, judged_back_m=back,

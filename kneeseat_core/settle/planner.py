@@ -68,10 +68,8 @@ class Planner:
         edges nearly parallel seen along Δ runs off its edge within micrometres - stands
         for a slope the surfaces have only that far), none steeper than `STEEPEST`
         (`kneeseat_core.settle.model`: a slope that steep holds for a sliver of a move)."""
-        gaps, slopes, faces = self._native.model(
-            touch.gaps, touch.normals, touch.points, touch.rooms,
-            np.ascontiguousarray(touch.faces, dtype=np.int64), _floats(centre), float(within),
-            float(room))
+        gaps, slopes, faces = self._native.model(touch.features, float(touch.rise),
+                                                 _floats(centre), float(within), float(room))
         return Model(np.frombuffer(gaps, dtype=np.float64),
                      np.frombuffer(slopes, dtype=np.float64).reshape(-1, 3),
                      np.frombuffer(faces, dtype=np.int64).reshape(-1, 2))
