@@ -30,7 +30,7 @@ from kneeseat_core.geometry import matrix_from_quat, pose_from, quat_from_matrix
 from kneeseat_core.referee import Envelope, Referee
 import kneeseat_core.settle as settle_package
 from kneeseat_core.settle import settle, SettleParams, SettleResult
-from kneeseat_core.settle.climb import _Climb
+from kneeseat_core.settle.climb import _Climb, _Place
 from kneeseat_core.settle.search import Search
 from kneeseat_core.settle.tuning import SettleTuning, TUNING
 from kneeseat_core.status import Status
@@ -200,6 +200,29 @@ def test_far_from_an_envelope_that_holds_every_move_keeps_its_length() -> None:
     for scale in (TUNING.least_moves, TUNING.near_first_moves, 1.0, TUNING.far_moves):
         moves = scale * climb.finest * climb.directions
         assert np.array_equal(climb._inside(moves, scale * climb.finest), moves), scale
+
+
+def test_only_a_scale_tried_in_every_direction_spares_the_proof() -> None:
+    """At rest, a step at the longest scale tries only its most promising moves and finds
+    nothing: the proof must still probe that scale in every direction (D5). A step at a
+    scale it tries whole spares the proof that scale."""
+    var = sc.variant('sphere_bowl', 'tilted')
+    rest = settle(var.fixed, var.moving, var.start, params(var))
+    assert rest.converged, rest.reason
+    search = Search(CollisionPair(var.fixed, var.moving), rest.pose, params(var), var.start)
+    search.sweep = SweepPair(var.fixed, var.moving, search.push)
+    climb = _Climb(search, search.sweep, TUNING, None)
+    first = climb.arrive(rest.pose, 0.0, TUNING.pool_window_res)
+    assert isinstance(first, _Place)
+    climb.settle_in(first)
+    far, whole = TUNING.far_moves * climb.finest, TUNING.every_direction_moves * climb.finest
+    assert far > whole
+    climb.scale = far
+    assert climb.step() is True and climb.scale < far     # nothing gained: it shrank
+    assert far not in climb.failed
+    climb.scale = whole
+    assert climb.step() is True and climb.scale < whole
+    assert whole in climb.failed
 
 
 def test_the_climbs_windows_must_hold_what_it_uses() -> None:

@@ -22,8 +22,9 @@ on the exact objective, over a small state object (`_Climb`):
   short of the travel the move needs; only the rest are measured.
 - `prove` (D5): when no move of the finest scale gains, probes in the 26 directions at 1, 4
   and 16 finest moves (and a quarter of one first where ligaments press the body on hard),
-  each needing the proof's lift, are tried the same way at every scale not yet tried at
-  the pose; one that gains is taken and the climb resumes. None gains: at rest.
+  each needing the proof's lift, are tried the same way at every scale not yet tried in
+  every direction at the pose; one that gains is taken and the climb resumes. None gains:
+  at rest.
 - the envelope: the climb may not leave a search envelope (D6); an envelope that holds (a
   config's soft-tissue stand-in) bounds the moves instead, and a rest on its boundary is
   reported as constrained.
@@ -123,7 +124,7 @@ class _Climb:
         self.planner = Planner(search, self.objective, self.arm, self.standoff)
         self.here: _Place | None = None
         self.pool: _Witnesses | None = None
-        self.failed: set[float] = set()     # scales that found nothing at the current pose
+        self.failed: set[float] = set()     # scales tried whole that found nothing here
         self.proof_checks = 0
         self.proof_s = 0.0
 
@@ -222,15 +223,17 @@ class _Climb:
         fine = scale <= t.fine_moves * self.finest
         moves = np.concatenate([scale * self.directions, self._uphill(scale)]) if fine \
             else scale * self.directions
-        found = self._try(self._inside(moves, scale), self.gain if fine else self.lift,
-                          None if scale <= t.every_direction_moves * self.finest
-                          else t.far_tries)
+        tries = None if scale <= t.every_direction_moves * self.finest else t.far_tries
+        found = self._try(self._inside(moves, scale), self.gain if fine else self.lift, tries)
         if isinstance(found, _Place):
             self.scale = min(t.grow * scale, t.far_moves * self.finest)
             return self.take(found)
         if found is not None:
             return found
-        self.failed.add(scale)
+        if tries is None:
+            # every direction failed at this scale: the proof need not probe it again (a
+            # long step tries only its most promising moves, which spares the proof nothing)
+            self.failed.add(scale)
         self.scale = scale * t.shrink
         if self.scale < t.least_moves * self.finest:
             self.scale = self.finest
@@ -291,8 +294,9 @@ class _Climb:
         return (Status.PULLED, self.objective.pulled_off(pull, load))
 
     def prove(self) -> End | None | bool:
-        """D5: probe about the pose at every scale not yet tried there; True when a probe
-        gained (the climb resumes there), an end when the climb must stop, None at rest."""
+        """D5: probe about the pose at every scale not yet tried there in every direction;
+        True when a probe gained (the climb resumes there), an end when the climb must stop,
+        None at rest."""
         assert self.here is not None
         s, t = self.search, self.tuning
         started = time.perf_counter()
