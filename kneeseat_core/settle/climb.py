@@ -124,6 +124,9 @@ class _Climb:
         self.planner = Planner(search, self.objective, self.arm, self.standoff)
         self.here: _Place | None = None
         self.pool: _Witnesses | None = None
+        # how far from where the witnesses' pool was taken it still names the pairs that
+        # close first (`_beyond_pool`)
+        self.pool_reach = tuning.pool_reach_moves * self.finest
         self.failed: set[float] = set()     # scales tried whole that found nothing here
         self.proof_checks = 0
         self.proof_s = 0.0
@@ -199,12 +202,18 @@ class _Climb:
         self.pool = _Witnesses(self.model(place), place.state)
 
     def _beyond_pool(self, offsets: Floats) -> Bools:
-        """Whether the pool is too far from each lateral state `offsets` (..., 3) away from
+        """Whether the pool is too far from each lateral state `offsets` (m, 3) away from
         where it was taken to name the pairs that close first there: a place there becomes
         the pool when the climb moves to it, so it is measured with the pool's window."""
-        reach = self.tuning.pool_reach_moves * self.finest
-        out: Bools = np.abs(offsets).max(axis=-1) > reach
+        out: Bools = np.abs(offsets).max(axis=-1) > self.pool_reach
         return out
+
+    def _left_pool(self, place: _Place) -> bool:
+        """`_beyond_pool` for the one place the climb moved to (its three coordinates
+        compared without numpy's array calls: the same numbers, the same answer)."""
+        assert self.pool is not None
+        x, y, z = (place.state - self.pool.state).tolist()
+        return bool(max(abs(x), abs(y), abs(z)) > self.pool_reach)
 
     # ---- the steps -------------------------------------------------------------------
     def step(self) -> End | None | bool:
@@ -260,9 +269,11 @@ class _Climb:
             return moves
         if self.here.offset is None:
             self.here.offset = self.search.offset(self.here.pose)
-        rooms = np.asarray(self.search.limits_to_envelope(self.here.pose, self.arm,
-                                                          moves / length, length,
-                                                          self.here.offset))
+        limits = self.search.limits_to_envelope(self.here.pose, self.arm, moves / length, length,
+                                                self.here.offset)
+        if limits is None:          # no move reaches the envelope's bounds
+            return moves
+        rooms = np.asarray(limits)
         # a move the envelope leaves whole is made (the shortest ones included); one it
         # shortens only while it leaves more than a share of the finest move
         keep = (rooms >= length) | (rooms > self.tuning.room_share * self.finest)
@@ -276,7 +287,7 @@ class _Climb:
         self.here = place
         self.failed = set()
         assert self.pool is not None
-        if self._beyond_pool(place.state - self.pool.state):
+        if self._left_pool(place):
             wide = place if place.wide else self.arrive(place.pose, 0.0,
                                                         self.tuning.pool_window_res)
             self._pool(wide if isinstance(wide, _Place) else place)
@@ -352,7 +363,8 @@ class _Climb:
         if len(moves) == 0:
             return None
         here = self.here
-        near = self.model(here, self.contact_tol, t.room_share * float(np.abs(moves).max()))
+        longest = float(np.abs(moves).max())
+        near = self.model(here, self.contact_tol, t.room_share * longest)
         press, drive = self.first_order(here)
         # ordered by what the near-active features promise (to first order they bound the
         # travel after a move from above), each with the travel it must reach: one Newton
@@ -365,7 +377,7 @@ class _Climb:
         pool = self.pool.model
         # penetration from a lateral move of length l is at most its steepest slope times l:
         # a vertex that far above a face is through it
-        deepest = STEEPEST * float(np.abs(moves).max()) + self.standoff
+        deepest = STEEPEST * longest + self.standoff
         offsets = moves + (here.state - self.pool.state)
         wide = self._beyond_pool(offsets)
         windows = np.where(wide, self.windows[1], self.windows[0])

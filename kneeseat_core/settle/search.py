@@ -189,13 +189,14 @@ class Search:
         return None
 
     def limits_to_envelope(self, pose: Pose, arm: float, directions: Floats, length: float,
-                           offset: tuple[Floats, float] | None = None) -> list[float]:
+                           offset: tuple[Floats, float] | None = None) -> list[float] | None:
         """The longest move from `pose` along each of `directions` (m, 3) (up to `length`)
-        that stays inside an envelope that holds (`length` itself otherwise); `offset`:
-        the pose's `offset`, where the caller has it already."""
+        that stays inside an envelope that holds; None where every one keeps `length` (an
+        envelope that does not hold, or one no move reaches); `offset`: the pose's
+        `offset`, where the caller has it already."""
         p = self.params
         if not p.envelope_holds:
-            return [length] * len(directions)
+            return None
         slide, spin = self.offset(pose) if offset is None else offset
         # far enough inside that no move reaches a bound (with a margin no rounding of the
         # bounds below can cross): every move keeps its whole length
@@ -204,7 +205,7 @@ class Search:
         if (math.hypot(float(slide[0]), float(slide[1])) + across * length
                 < (1.0 - _MARGIN) * p.max_slide_m
                 and abs(spin) + turn * length / arm < (1.0 - _MARGIN) * p.max_spin_rad):
-            return [length] * len(directions)
+            return None
         bb = float(slide @ slide)
         out = []
         for direction in directions:
