@@ -39,9 +39,9 @@ ENGINE = 'kneeseat_core/meshes/_sweep.cpp'
 
 def compile_engine(source: str, name: str, where: Path) -> Any:
     """`source` built as module `name` in `where` (the package's flags) and imported."""
+    # the package's shared headers (`#include "../_buffers.h"` and the like) by their path
     text = source.replace('PyInit__sweep(', f'PyInit_{name}(').replace(
-        '"_sweep",', f'"{name}",').replace('"../_buffers.h"',
-                                           f'"{REPO / "kneeseat_core" / "_buffers.h"}"')
+        '"_sweep",', f'"{name}",').replace('#include "../', f'#include "{REPO / "kneeseat_core"}/')
     (where / f'{name}.cpp').write_text(text)
     dist = Distribution({'ext_modules': [Extension(name, [str(where / f'{name}.cpp')],
                                                    extra_compile_args=['-O3', '-std=c++17'],
