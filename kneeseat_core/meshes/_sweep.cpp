@@ -50,10 +50,16 @@ constexpr int kPlaneBoundTriangles = 64;
 inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 inline double cross2(double ax, double ay, double bx, double by) { return ax * by - ay * bx; }
 
+// A node of the hierarchy as the traversal reads it: twelve bytes, so that a node and its
+// first child (the next one) usually share a cache line; its box is kept apart (`Box`),
+// read only where a view bounds a large node by it.
 struct Node {
     int32_t right;            // second child (the first is the next node); -1 for a leaf
     int32_t first, count;     // the node's triangles: [first, first + count) in tree order
-    double lo[3], hi[3];      // bounding box, the body's frame
+};
+
+struct Box {
+    double lo[3], hi[3];      // a node's bounding box, the body's frame
 };
 
 struct ViewBuffers;
@@ -69,11 +75,16 @@ struct Body {
     std::vector<int8_t> facing;      // (m,) +1/-1: the outward side of a closed surface
                                      // (winding or its reverse); 0: open, both sides count
     std::vector<Node> nodes;
+    std::vector<Box> boxes;          // each node's (`Node`)
     // the distinct vertices of each node bounded by planes (CSR: node i's are
     // node_vertices[node_vertex_start[i], node_vertex_start[i + 1]); none for a larger one)
     std::vector<int32_t> node_vertex_start, node_vertices;
     // the arrays of views of it that are gone, for the next ones (`View`)
     mutable std::vector<ViewBuffers> spare;
+    // queries placed on views of it so far: a moving node's bound placed is marked with its
+    // query's number, which no view's arrays (spare ones included) hold from before, so
+    // they need no clearing (64 bits: it never wraps)
+    mutable uint64_t queries = 0;
 
     int build(std::vector<int32_t> &order, const std::vector<double> &centres, int first, int count);
 };
@@ -81,8 +92,8 @@ struct Body {
 int Body::build(std::vector<int32_t> &order, const std::vector<double> &centres, int first,
                 int count) {
     int index = static_cast<int>(nodes.size());
-    Node node{-1, first, count, {kInf, kInf, kInf}, {-kInf, -kInf, -kInf}};
-    nodes.push_back(node);
+    nodes.push_back(Node{-1, first, count});
+    boxes.push_back(Box{{kInf, kInf, kInf}, {-kInf, -kInf, -kInf}});
     if (count <= kLeafTriangles) return index;
     double lo[3] = {kInf, kInf, kInf}, hi[3] = {-kInf, -kInf, -kInf};
     for (int i = first; i < first + count; ++i)
@@ -116,6 +127,7 @@ void make_body(Body &body, const double *vertices, Py_ssize_t nv, const int64_t 
     std::vector<int32_t> order(nf);
     for (Py_ssize_t t = 0; t < nf; ++t) order[t] = static_cast<int32_t>(t);
     body.nodes.reserve(2 * nf / kLeafTriangles + 2);
+    body.boxes.reserve(2 * nf / kLeafTriangles + 2);
     if (nf > 0) body.build(order, centres, 0, static_cast<int>(nf));
     body.faces.resize(3 * nf);
     body.face_id.resize(nf);
@@ -139,15 +151,18 @@ void make_body(Body &body, const double *vertices, Py_ssize_t nv, const int64_t 
         body.areas[i] = 0.5 * length;
         for (int k = 0; k < 3; ++k) body.normals[3 * i + k] = length > 0.0 ? n[k] / length : 0.0;
     }
-    for (Node &node : body.nodes)
+    for (size_t index = 0; index < body.nodes.size(); ++index) {
+        const Node &node = body.nodes[index];
+        Box &box = body.boxes[index];
         for (int i = node.first; i < node.first + node.count; ++i)
             for (int c = 0; c < 3; ++c) {
                 const double *p = &body.vertices[3 * body.faces[3 * i + c]];
                 for (int k = 0; k < 3; ++k) {
-                    node.lo[k] = std::min(node.lo[k], p[k]);
-                    node.hi[k] = std::max(node.hi[k], p[k]);
+                    box.lo[k] = std::min(box.lo[k], p[k]);
+                    box.hi[k] = std::max(box.hi[k], p[k]);
                 }
             }
+    }
     // a view bounds such a node over its vertices (View::fill): each once, not once for
     // every triangle that shares it (about four times fewer)
     body.node_vertex_start.assign(1, 0);
@@ -167,7 +182,7 @@ void make_body(Body &body, const double *vertices, Py_ssize_t nv, const int64_t 
 // A node seen along d: its shadow's rectangle in (u, w) and a plane h = g . q + c over it
 // (c folded into the offsets), every point of its triangles at a height h - g . q in
 // [low, high]. low > high: no triangle of the node takes part.
-struct Bound {
+struct alignas(64) Bound {     // one cache line each
     double lo[2], hi[2], g[2], low, high;
 };
 
@@ -176,6 +191,8 @@ struct Bound {
 // heights about that plane [low, high] (low > high: no triangle of it takes part).
 struct Placed {
     double x, y, rx, ry, g[2], c, low, high;
+    double width;             // its shadow's width in its own view (the traversal's choice)
+    uint64_t stamp;           // the query it was placed for (`Body::queries`)
 };
 
 // The traversal's small steps are forced inline (a node pair's bounds, a vertex's shadow,
@@ -191,11 +208,11 @@ struct ViewBuffers {
     std::unique_ptr<Bound[]> bounds;
     std::vector<uint8_t> has_bound;
     // the moving body's vertices and node bounds placed for the current query (fixed view
-    // coordinates), each marked with the query's stamp when computed (a moving view's)
+    // coordinates; a moving view's), each marked when computed: a vertex with the view's
+    // count of queries (`placed_stamp`), a node bound with the body's (`Placed::stamp`)
     std::unique_ptr<double[]> placed;
     std::vector<uint32_t> placed_stamp;
     std::unique_ptr<Placed[]> placed_bounds;
-    std::vector<uint32_t> placed_bound_stamp;
     // each triangle's slope (`slope`), 0 not yet asked, 1 kept, 2 none to trust
     std::unique_ptr<double[]> slopes;
     std::vector<uint8_t> has_slope;
@@ -259,10 +276,9 @@ View::View(const Body &b, const double *direction, int side_) : body(&b), side(s
     if (side == 1) {
         if (!placed) {
             placed.reset(new double[3 * nv]);
-            placed_bounds.reset(new Placed[nn]);
+            placed_bounds.reset(new Placed[nn]());      // stamps 0: no query's
         }
         placed_stamp.assign(nv + 1, 0);
-        placed_bound_stamp.assign(nn, 0);
     }
 }
 
@@ -319,9 +335,10 @@ __attribute__((noinline)) void View::fill(int index) {
     b.low = kInf;
     b.high = -kInf;
     if (node.count > kPlaneBoundTriangles) {      // the box's corners
+        const Box &box = body->boxes[index];
         for (int c = 0; c < 8; ++c) {
-            double p[3] = {c & 1 ? node.hi[0] : node.lo[0], c & 2 ? node.hi[1] : node.lo[1],
-                           c & 4 ? node.hi[2] : node.lo[2]};
+            double p[3] = {c & 1 ? box.hi[0] : box.lo[0], c & 2 ? box.hi[1] : box.lo[1],
+                           c & 4 ? box.hi[2] : box.lo[2]};
             double x = dot3(p, u), y = dot3(p, w), h = dot3(p, d);
             b.lo[0] = std::min(b.lo[0], x); b.hi[0] = std::max(b.hi[0], x);
             b.lo[1] = std::min(b.lo[1], y); b.hi[1] = std::max(b.hi[1], y);
@@ -405,7 +422,8 @@ struct Sweep {
     double cos_, sin_, du, dw, dh;     // moving view -> fixed view: q = Rot q' + (du, dw)
     double behind, window, limit;
     double short_of = -kInf;           // stop once the travel is known to be below this
-    uint32_t stamp = 0;
+    uint32_t stamp = 0;                // the moving vertices' (a view's own count)
+    uint64_t query = 0;                // the moving node bounds' (`Body::queries`)
     bool want_features = false;
     // results
     double best;
@@ -444,10 +462,10 @@ void Sweep::place(const double *pose) {
     dh = dot3(T, fixed->d);
     if (++moving->placed_stamp[0] == 0) {        // slot 0 holds the running stamp
         std::fill(moving->placed_stamp.begin(), moving->placed_stamp.end(), 0);
-        std::fill(moving->placed_bound_stamp.begin(), moving->placed_bound_stamp.end(), 0);
         moving->placed_stamp[0] = 1;
     }
     stamp = moving->placed_stamp[0];
+    query = ++moving->body->queries;
 }
 
 KNEESEAT_INLINE const double *Sweep::moving_vertex(int32_t i) {
@@ -467,12 +485,12 @@ KNEESEAT_INLINE const double *Sweep::moving_vertex(int32_t i) {
 // shifted into the fixed view), computed once a query: a node meets many fixed nodes.
 KNEESEAT_INLINE const Placed &Sweep::moving_bound(int b) {
     Placed &P = moving->placed_bounds[b];
-    uint32_t &mark = moving->placed_bound_stamp[b];
-    if (mark == stamp) return P;
-    mark = stamp;
+    if (P.stamp == query) return P;
+    P.stamp = query;
     const Bound &B = moving->bound(b);
     P.low = B.low;
     P.high = B.high;
+    P.width = (B.hi[0] - B.lo[0]) + (B.hi[1] - B.lo[1]);
     if (B.low > B.high) return P;
     double cx = 0.5 * (B.lo[0] + B.hi[0]), cy = 0.5 * (B.lo[1] + B.hi[1]);
     double ex = 0.5 * (B.hi[0] - B.lo[0]), ey = 0.5 * (B.hi[1] - B.lo[1]);
@@ -714,10 +732,11 @@ void Sweep::run(const int64_t *seeds, Py_ssize_t count) {
                 }
                 break;
             }
-            // open the node whose shadow is wider (a leaf is never opened)
-            const Bound &A = fixed->bound(v.a), &B = moving->bound(v.b);
+            // open the node whose shadow is wider (a leaf is never opened; the pair's bounds
+            // are placed already)
+            const Bound &A = fixed->bound(v.a);
             double wa = (A.hi[0] - A.lo[0]) + (A.hi[1] - A.lo[1]);
-            double wb = (B.hi[0] - B.lo[0]) + (B.hi[1] - B.lo[1]);
+            double wb = moving_bound(v.b).width;
             bool open_fixed = nb.right < 0 || (na.right >= 0 && wa >= wb);
             int kids[2] = {open_fixed ? v.a + 1 : v.b + 1, open_fixed ? na.right : nb.right};
             Visit next[2];
