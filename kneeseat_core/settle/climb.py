@@ -58,6 +58,7 @@ _DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3)
 _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
 
 End = tuple[int, str]    # (Status code, reason)
+_SQRT2 = math.sqrt(2.0)
 
 
 @dataclass(slots=True, eq=False)
@@ -269,6 +270,11 @@ class _Climb:
             return moves
         if self.here.offset is None:
             self.here.offset = self.search.offset(self.here.pose)
+        # no move of max-norm `length` slides more than sqrt(2) `length` or spins more than
+        # an arc of `length`: far enough inside, every one is whole (without numpy's calls)
+        if not self.search.may_reach_bounds(self.here.offset, _SQRT2 * length,
+                                            length / self.arm):
+            return moves
         limits = self.search.limits_to_envelope(self.here.pose, self.arm, moves / length, length,
                                                 self.here.offset)
         if limits is None:          # no move reaches the envelope's bounds

@@ -198,13 +198,9 @@ class Search:
         if not p.envelope_holds:
             return None
         slide, spin = self.offset(pose) if offset is None else offset
-        # far enough inside that no move reaches a bound (with a margin no rounding of the
-        # bounds below can cross): every move keeps its whole length
         across = float(np.max(np.hypot(directions[:, 0], directions[:, 1]), initial=0.0))
         turn = float(np.max(np.abs(directions[:, 2]), initial=0.0))
-        if (math.hypot(float(slide[0]), float(slide[1])) + across * length
-                < (1.0 - _MARGIN) * p.max_slide_m
-                and abs(spin) + turn * length / arm < (1.0 - _MARGIN) * p.max_spin_rad):
+        if not self.may_reach_bounds((slide, spin), across * length, turn * length / arm):
             return None
         bb = float(slide @ slide)
         out = []
@@ -221,6 +217,18 @@ class Search:
                 most = min(most, max(room * arm / abs(direction[2]), 0.0))
             out.append(most)
         return out
+
+    def may_reach_bounds(self, offset: tuple[Floats, float], slide_m: float,
+                         spin_rad: float) -> bool:
+        """Whether a move from a pose at `offset` (its `offset`) that slides at most
+        `slide_m` across Δ and spins at most `spin_rad` may reach a bound of an envelope
+        that holds; False: it stays farther inside than any rounding of the bounds'
+        arithmetic could cross (`limits_to_envelope` then leaves every such move whole)."""
+        p = self.params
+        slide, spin = offset
+        return not (math.hypot(float(slide[0]), float(slide[1])) + slide_m
+                    < (1.0 - _MARGIN) * p.max_slide_m
+                    and abs(spin) + spin_rad < (1.0 - _MARGIN) * p.max_spin_rad)
 
     def on_boundary(self, pose: Pose, margin: float, arm: float) -> str | None:
         """Which envelope bound `pose` rests on (within `margin` m), if any."""
