@@ -154,7 +154,7 @@ class Touch:
     buried: bool            # the pose lowered by `behind` is in collision: lower further
     features: np.ndarray    # (k,) `FEATURE` records, as the engine found them
     rise: float = 0.0       # m along Δ from the pose measured to the pose seen from
-    push: Floats = field(default_factory=lambda: np.zeros(3))   # (3,) Δ, where rise is not 0
+    push: Floats | None = None   # (3,) Δ, where rise is not 0
 
     @classmethod
     def of(cls, travel: float, buried: bool, gaps: Floats, normals: Floats, points: Floats,
@@ -188,7 +188,8 @@ class Touch:
     def points(self) -> Floats:
         """(k, 3) the moving body's point at each feature, fixed frame (at the pose seen
         from)."""
-        out: Floats = self.features['point'] + self.rise * self.push
+        points = self.features['point']
+        out: Floats = points.copy() if self.push is None else points + self.rise * self.push
         return out
 
     @property
