@@ -458,3 +458,46 @@ def test_a_pose_measures_the_same_whatever_direction_was_asked_before() -> None:
 
     own, after_other = measured(direction), measured(other)
     assert own[0] == after_other[0] and np.array_equal(own[1], after_other[1])
+
+
+def test_views_made_from_gone_views_arrays_answer_as_fresh_ones() -> None:
+    """A moving view keeps its nodes' bounds placed for the query that placed them, marked
+    with that query's number: views of one body taking turns, and views made from the
+    arrays of views that are gone (never cleared), must answer every pose bit for bit as a
+    body and views made for that pose alone do."""
+    var = sc.variant('sphere_bowl', 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    start = backed(CollisionPair(var.fixed, var.moving), var.start, push)
+    direction = start[:3, :3].T @ push
+    rng = np.random.default_rng(20261206)
+    poses = []
+    for _ in range(8):          # slides across the push and spins about it: one direction
+        turn = rotation_about(push, float(rng.uniform(-1.5, 1.5)))
+        pose = pose_from(turn @ start[:3, :3], start[:3, 3] + rng.uniform(-3e-3, 3e-3, 3))
+        pose[:3, 3] -= 2e-3 * push
+        poses.append(pose)
+
+    def native(body: RigidBody) -> _sweep.Body:
+        return _sweep.Body(np.ascontiguousarray(body.vertices), np.ascontiguousarray(body.faces),
+                           np.ascontiguousarray(facing(body.mesh)))
+
+    def ask(fixed_view: _sweep.View, moving_view: _sweep.View,
+            pose: np.ndarray) -> tuple[float, bytes]:
+        travel, _, raw, _ = _sweep.contacts(fixed_view, moving_view, pose, 1e-3, 2e-4, 1e300)
+        return travel, raw
+
+    def alone(pose: np.ndarray) -> tuple[float, bytes]:
+        fixed, moving = native(var.fixed), native(var.moving)
+        return ask(_sweep.View(fixed, push, -1), _sweep.View(moving, direction, 1), pose)
+
+    fixed, moving = native(var.fixed), native(var.moving)
+    fixed_view = _sweep.View(fixed, push, -1)
+    first = _sweep.View(moving, direction, 1)
+    answers = [ask(fixed_view, first, pose) for pose in poses[:3]]
+    del first                           # its arrays wait for the next view
+    second = _sweep.View(moving, direction, 1)
+    third = _sweep.View(moving, direction, 1)
+    for k, pose in enumerate(poses[3:]):
+        answers.append(ask(fixed_view, (second, third)[k % 2], pose))
+    assert [alone(pose) for pose in poses] == answers
+    assert len({raw for _, raw in answers}) > 1      # the poses meet the bowl differently
