@@ -58,7 +58,6 @@ _DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3)
 _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
 
 End = tuple[int, str]    # (Status code, reason)
-_SQRT2 = math.sqrt(2.0)
 
 
 @dataclass(slots=True, eq=False)
@@ -203,18 +202,11 @@ class _Climb:
         self.pool = _Witnesses(self.model(place), place.state)
 
     def _beyond_pool(self, offsets: Floats) -> Bools:
-        """Whether the pool is too far from each lateral state `offsets` (m, 3) away from
+        """Whether the pool is too far from each lateral state `offsets` (..., 3) away from
         where it was taken to name the pairs that close first there: a place there becomes
         the pool when the climb moves to it, so it is measured with the pool's window."""
         out: Bools = np.abs(offsets).max(axis=-1) > self.pool_reach
         return out
-
-    def _left_pool(self, place: _Place) -> bool:
-        """`_beyond_pool` for the one place the climb moved to (its three coordinates
-        compared without numpy's array calls: the same numbers, the same answer)."""
-        assert self.pool is not None
-        x, y, z = (place.state - self.pool.state).tolist()
-        return bool(max(abs(x), abs(y), abs(z)) > self.pool_reach)
 
     # ---- the steps -------------------------------------------------------------------
     def step(self) -> End | None | bool:
@@ -270,11 +262,6 @@ class _Climb:
             return moves
         if self.here.offset is None:
             self.here.offset = self.search.offset(self.here.pose)
-        # no move of max-norm `length` slides more than sqrt(2) `length` or spins more than
-        # an arc of `length`: far enough inside, every one is whole (without numpy's calls)
-        if not self.search.may_reach_bounds(self.here.offset, _SQRT2 * length,
-                                            length / self.arm):
-            return moves
         limits = self.search.limits_to_envelope(self.here.pose, self.arm, moves / length, length,
                                                 self.here.offset)
         if limits is None:          # no move reaches the envelope's bounds
@@ -293,7 +280,7 @@ class _Climb:
         self.here = place
         self.failed = set()
         assert self.pool is not None
-        if self._left_pool(place):
+        if self._beyond_pool(place.state - self.pool.state):
             wide = place if place.wide else self.arrive(place.pose, 0.0,
                                                         self.tuning.pool_window_res)
             self._pool(wide if isinstance(wide, _Place) else place)

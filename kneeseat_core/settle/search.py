@@ -32,6 +32,7 @@ log = logging.getLogger('kneeseat_core.settle')
 # the relative margin by which a move must stay inside the envelope's bounds for its room
 # not to be computed (`Search.limits_to_envelope`)
 _MARGIN = 1e-9
+_SQRT2 = math.sqrt(2.0)
 
 LOST_CONTACT = ('lost contact: the body slid off the edge of the fixed body without finding '
                 'rest along this push')
@@ -190,17 +191,20 @@ class Search:
 
     def limits_to_envelope(self, pose: Pose, arm: float, directions: Floats, length: float,
                            offset: tuple[Floats, float] | None = None) -> list[float] | None:
-        """The longest move from `pose` along each of `directions` (m, 3) (up to `length`)
-        that stays inside an envelope that holds; None where every one keeps `length` (an
-        envelope that does not hold, or one no move reaches); `offset`: the pose's
-        `offset`, where the caller has it already."""
+        """The longest move from `pose` along each of `directions` (m, 3), each of max-norm
+        at most 1 (so a move slides at most sqrt(2) of its length across Δ and turns at most
+        an arc of it), up to `length`, that stays inside an envelope that holds; None where
+        every one keeps `length` (an envelope that does not hold, or one no move reaches);
+        `offset`: the pose's `offset`, where the caller has it already."""
         p = self.params
         if not p.envelope_holds:
             return None
         slide, spin = self.offset(pose) if offset is None else offset
-        across = float(np.max(np.hypot(directions[:, 0], directions[:, 1]), initial=0.0))
-        turn = float(np.max(np.abs(directions[:, 2]), initial=0.0))
-        if not self.may_reach_bounds((slide, spin), across * length, turn * length / arm):
+        # far enough inside that no move reaches a bound (with a margin no rounding of the
+        # bounds below can cross): every move keeps its whole length
+        if (math.hypot(float(slide[0]), float(slide[1])) + _SQRT2 * length
+                < (1.0 - _MARGIN) * p.max_slide_m
+                and abs(spin) + length / arm < (1.0 - _MARGIN) * p.max_spin_rad):
             return None
         bb = float(slide @ slide)
         out = []
@@ -217,18 +221,6 @@ class Search:
                 most = min(most, max(room * arm / abs(direction[2]), 0.0))
             out.append(most)
         return out
-
-    def may_reach_bounds(self, offset: tuple[Floats, float], slide_m: float,
-                         spin_rad: float) -> bool:
-        """Whether a move from a pose at `offset` (its `offset`) that slides at most
-        `slide_m` across Δ and spins at most `spin_rad` may reach a bound of an envelope
-        that holds; False: it stays farther inside than any rounding of the bounds'
-        arithmetic could cross (`limits_to_envelope` then leaves every such move whole)."""
-        p = self.params
-        slide, spin = offset
-        return not (math.hypot(float(slide[0]), float(slide[1])) + slide_m
-                    < (1.0 - _MARGIN) * p.max_slide_m
-                    and abs(spin) + spin_rad < (1.0 - _MARGIN) * p.max_spin_rad)
 
     def on_boundary(self, pose: Pose, margin: float, arm: float) -> str | None:
         """Which envelope bound `pose` rests on (within `margin` m), if any."""
