@@ -225,6 +225,71 @@ def test_only_a_scale_tried_in_every_direction_spares_the_proof() -> None:
     assert whole in climb.failed
 
 
+def ridge_groove(angle_deg: float, wall: float, fall: float) -> trimesh.Trimesh:
+    """A V-groove whose floor falls at `fall` along its axis, which lies `angle_deg` from +X
+    (e1 for a push along -Y) in the XZ plane; its walls rise at `wall` across it."""
+    angle = math.radians(angle_deg)
+
+    def surface(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        along = math.cos(angle) * x + math.sin(angle) * z
+        across = -math.sin(angle) * x + math.cos(angle) * z
+        out: np.ndarray = wall * np.abs(across) - fall * along
+        return out
+    return shapes.heightfield_solid(surface, 0.02, 0.02, 161, bottom=-0.06)
+
+
+def climb_in_the_groove(tuning: SettleTuning) -> _Climb:
+    """A sphere of 5 mm settled into the groove's floor, where its axis lies half-way
+    between two probe directions (22.5 degrees from each): the climb at its first contact."""
+    fixed = RigidBody.from_mesh(ridge_groove(22.5, 2.0, 0.6))
+    ball = RigidBody.from_mesh(shapes.sphere(5e-3))
+    start = pose_from(np.eye(3), [0.0, 0.02, 0.0])
+    search = Search(CollisionPair(fixed, ball), start,
+                    SettleParams(push=(0.0, -1.0, 0.0), max_slide_m=0.05), start)
+    search.sweep = SweepPair(fixed, ball, search.push)
+    climb = _Climb(search, search.sweep, tuning, None)
+    first = climb.arrive(start, 0.0, tuning.pool_window_res)
+    assert isinstance(first, _Place)
+    climb.settle_in(first)
+    return climb
+
+
+def test_the_proof_follows_a_ridge_between_the_probe_directions() -> None:
+    """Along the groove the travel grows by 0.6 of the move, across it it falls by 2: every
+    probe direction, 22.5 degrees or more off the axis, loses, and probes alone would call
+    the floor a rest. The near-active features' way up keeps both walls and follows the
+    floor: the proof finds it gaining and the climb moves down the groove."""
+    blind = climb_in_the_groove(replace(TUNING, uphill_probe_moves=()))
+    assert blind.prove() is None            # the probe directions alone see no way up
+    climb = climb_in_the_groove(TUNING)
+    before = climb.here.state.copy()
+    assert climb.prove() is True
+    move = climb.here.state - before
+    axis = np.array([math.cos(math.radians(22.5)), math.sin(math.radians(22.5))])
+    along = float(move[:2] @ axis)
+    assert along > 0.0
+    assert abs(move[0] * axis[1] - move[1] * axis[0]) < 0.1 * along    # down the floor
+
+
+def test_a_step_shorter_than_a_finest_move_tries_the_way_up_alone(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Below one finest move a step tries only the move the near-active features say climbs
+    most; from one finest move on, every probe direction and that move."""
+    climb = climb_in_the_groove(TUNING)
+    tried: list[int] = []
+    real_try = climb._try
+
+    def counted(moves: np.ndarray, *rest: object) -> object:
+        tried.append(len(moves))
+        return real_try(moves, *rest)        # type: ignore[arg-type]
+    monkeypatch.setattr(climb, '_try', counted)
+    climb.scale = 0.5 * climb.finest
+    climb.step()
+    climb.scale = climb.finest
+    climb.step()
+    assert tried == [1, len(climb.directions) + 1]
+
+
 def test_the_climbs_windows_must_hold_what_it_uses() -> None:
     """A place's window below the contact tolerance (plus its margin), or a pool narrower
     than a place's window, would drop features the climb uses: such a tuning is refused."""

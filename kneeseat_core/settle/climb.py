@@ -10,7 +10,8 @@ on the exact objective, over a small state object (`_Climb`):
 
 - `step`: the moves of the current scale (the 26 probe directions: slides, spins and their
   combinations; at the finest scales also the move the near-active features say climbs
-  most with every contact kept) are tried, most promising first, until one gains: the
+  most with every contact kept, and below one finest move that move alone) are tried,
+  most promising first, until one gains: the
   proof's lift for a long move, anything measurable for a short one (`move_gain_res`: a
   spin the contacts determine weakly is followed to its top). The scale grows after a
   gain and shrinks after none, so a shallow slope is climbed in long moves and a crease
@@ -20,11 +21,12 @@ on the exact objective, over a small state object (`_Climb`):
   moves; the pairs of triangles the features say close first after a move, and the
   vertices of their moving triangles, refute a move exactly where one meets the fixed body
   short of the travel the move needs; only the rest are measured.
-- `prove` (D5): when no move of the finest scale gains, probes in the 26 directions at 1, 4
-  and 16 finest moves (and a quarter of one first where ligaments press the body on hard),
-  each needing the proof's lift, are tried the same way at every scale not yet tried in
-  every direction at the pose; one that gains is taken and the climb resumes. None gains:
-  at rest.
+- `prove` (D5): when no move of the finest scale gains, the near-active features' way up
+  at a quarter and a half of a finest move (a ridge between the probe directions), then
+  probes in the 26 directions at 1, 4 and 16 finest moves (and a quarter of one first
+  where ligaments press the body on hard), each needing the proof's lift, are tried the
+  same way, the directions at every scale not yet tried in every direction at the pose;
+  one that gains is taken and the climb resumes. None gains: at rest.
 - the envelope: the climb may not leave a search envelope (D6); an envelope that holds (a
   config's soft-tissue stand-in) bounds the moves instead, and a rest on its boundary is
   reported as constrained.
@@ -221,10 +223,17 @@ class _Climb:
         # a long move must gain what the proof could see; a short one anything (so that a
         # spin the contacts determine weakly is followed to its top), and the near-active
         # features' own way up joins the directions there (slide and spin combined as no
-        # fixed direction combines them)
+        # fixed direction combines them); shorter than a finest move it is the only move:
+        # their first-order model holds that close, and to first order its move beats every
+        # direction of that length (the proof's own probes catch where it does not)
         fine = scale <= t.fine_moves * self.finest
-        moves = np.concatenate([scale * self.directions, self._uphill(scale)]) if fine \
-            else scale * self.directions
+        directions = scale >= t.directions_from_moves * self.finest
+        if not directions:
+            moves = self._uphill(scale)
+        elif fine:
+            moves = np.concatenate([scale * self.directions, self._uphill(scale)])
+        else:
+            moves = scale * self.directions
         tries = None if scale <= t.every_direction_moves * self.finest else t.far_tries
         found = self._try(self._inside(moves, scale), self.gain if fine else self.lift, tries)
         if isinstance(found, _Place):
@@ -232,9 +241,10 @@ class _Climb:
             return self.take(found)
         if found is not None:
             return found
-        if tries is None:
+        if tries is None and directions:
             # every direction failed at this scale: the proof need not probe it again (a
-            # long step tries only its most promising moves, which spares the proof nothing)
+            # long step tries only its most promising moves, and a short one only the way
+            # up, which spares the proof nothing)
             self.failed.add(scale)
         self.scale = scale * t.shrink
         if self.scale < t.least_moves * self.finest:
@@ -298,9 +308,9 @@ class _Climb:
         return (Status.PULLED, self.objective.pulled_off(pull, load))
 
     def prove(self) -> End | None | bool:
-        """D5: probe about the pose at every scale not yet tried there in every direction;
-        True when a probe gained (the climb resumes there), an end when the climb must stop,
-        None at rest."""
+        """D5: probe about the pose, the way up at the shortest lengths first, then in every
+        direction at every scale not yet tried there in every direction; True when a probe
+        gained (the climb resumes there), an end when the climb must stop, None at rest."""
         assert self.here is not None
         s, t = self.search, self.tuning
         started = time.perf_counter()
@@ -313,6 +323,17 @@ class _Climb:
             near = self.model(self.here, self.contact_tol,
                               t.room_share * self.finest)
             floor = float(np.min(near.gaps)) if len(near.gaps) else 0.0
+            # the way up first, a quarter and a half of a finest move long: it follows a
+            # ridge narrower than the probe directions' spacing, where every one of them
+            # loses (the natural knee's tibia at flexion -8, varus 2: 0.042 mm from a
+            # quarter, none from any direction at one)
+            for scale in t.uphill_probe_moves:
+                length = scale * self.finest
+                moves = self._inside(self._uphill(length), length)
+                self.proof_checks += len(moves)
+                found = self._probe(moves, length)
+                if found is not None:
+                    return found
             for scale, hopeless_res in scales:
                 length = scale * self.finest
                 moves = self._inside(length * self.directions, length)
@@ -327,15 +348,22 @@ class _Climb:
                     modelled = press * (near.travel(moves) - floor) + moves @ drive
                     margin = hopeless_res * s.params.resolution_m * pressed
                     moves = moves[modelled >= self.lift - margin]
-                found = self._try(moves, self.lift)
-                if isinstance(found, _Place):
-                    self.scale = length
-                    return self.take(found)
+                found = self._probe(moves, length)
                 if found is not None:
                     return found
         finally:
             self.proof_s += time.perf_counter() - started
         return None
+
+    def _probe(self, moves: Floats, length: float) -> End | bool | None:
+        """The proof's probes `moves` (m, 3) of `length`, each needing the lift: True when
+        one gained (the climb moved there and resumes at that scale), an end when the climb
+        must stop, None when none gained."""
+        found = self._try(moves, self.lift)
+        if isinstance(found, _Place):
+            self.scale = length
+            return self.take(found)
+        return found
 
     def _try(self, moves: Floats, gain: float, tries: int | None = None
              ) -> _Place | End | None:

@@ -56,6 +56,11 @@ class SettleTuning:
         shrink: one that found nothing shrinks by this factor, down to...
         least_moves: ...this many finest moves (below one: a smooth objective's top is
             found closer than the finest move; the proof then starts from the finest).
+        directions_from_moves: a scale of at least this many finest moves tries the probe
+            directions; a shorter one only the move the near-active features say climbs
+            most (their first-order model holds that close, and its best move beats every
+            direction of the same length; on the full tables 7.8 / 7.9 exact travels a
+            cell instead of 9.7 / 9.0, total and natural knee, with the proof's way up).
         every_direction_moves: a scale of up to this many finest moves tries every probe
             direction; a longer one only the...
         far_tries: ...this many most promising (its witnesses, drawn near the pose, say
@@ -66,7 +71,11 @@ class SettleTuning:
             the engine ranks 8 in one pass over the pool and sorts it for more, and 8 were
             the cheapest on all three knees, docs/tables.md).
     Proof of rest (D5):
-        probe_scales_moves: probe lengths.
+        uphill_probe_moves: the proof first tries the near-active features' way up (the
+            move they say climbs most) at these lengths, each needing the lift: it follows
+            a ridge narrower than the probe directions' spacing, along which every
+            direction loses...
+        probe_scales_moves: ...then the probe directions at these lengths.
         pressed_from: where the objective presses the body on at least this many times
             its load (`Objective.pressing`), the proof probes first at...
         pressed_probe_moves: ...this length: a gain of the proof's lift then needs a
@@ -94,10 +103,12 @@ class SettleTuning:
     far_moves: float = 16.0
     shrink: float = 0.25
     least_moves: float = 0.25
+    directions_from_moves: float = 1.0
     every_direction_moves: float = 4.0
     far_tries: int = 3
     witnesses: int = 8
     probe_scales_moves: tuple[float, ...] = (1.0, 4.0, 16.0)
+    uphill_probe_moves: tuple[float, ...] = (0.25, 0.5)
     pressed_from: float = 8.0
     pressed_probe_moves: float = 0.25
     probe_lift_res: float = 0.25
