@@ -9,20 +9,19 @@ and the contact features that close within a window beyond. The climb is a patte
 on the exact objective, over a small state object (`_Climb`):
 
 - `step`: the moves of the current scale (the 26 probe directions: slides, spins and their
-  combinations; at the finest scales also the move the near-active features say climbs
-  most with every contact kept, and below one finest move that move alone) are tried,
-  most promising first, until one gains: the
-  proof's lift for a long move, anything measurable for a short one (`move_gain_res`: a
-  spin the contacts determine weakly is followed to its top). The scale grows after a
-  gain and shrinks after none, so a shallow slope is climbed in long moves and a crease
-  in short ones.
+  combinations; at the finest scales also the way up, the move the contacts say climbs
+  most with every contact kept, and below one finest move the way up alone) are tried,
+  most promising first, until one gains: the proof's lift for a long move, anything
+  measurable for a short one (`move_gain_res`: a spin the contacts determine weakly is
+  followed to its top). The scale grows after a gain and shrinks after none, down to one
+  finest move, so a shallow slope is climbed in long moves and a crease in short ones.
 - `_try`: most moves run into a contact, and the features say which: the near-active ones
   (the travel after a small move to first order, `kneeseat_core.settle.model`) order the
   moves; the pairs of triangles the features say close first after a move, and the
   vertices of their moving triangles, refute a move exactly where one meets the fixed body
   short of the travel the move needs; only the rest are measured.
-- `prove` (D5): when no move of the finest scale gains, the near-active features' way up
-  at a quarter and a half of a finest move (a ridge between the probe directions), then
+- `prove` (D5): when no move of the finest scale gains, the way up at a quarter and a
+  half of a finest move (along a ridge between the probe directions), then
   probes in the 26 directions at 1, 4 and 16 finest moves (and a quarter of one first
   where ligaments press the body on hard), each needing the proof's lift, are tried the
   same way, the directions at every scale not yet tried in every direction at the pose;
@@ -96,10 +95,12 @@ _NO_POOL = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
 @dataclass(frozen=True, slots=True, eq=False)
 class _Witnesses:
     """Every feature within a wide window of a place (the pool the witnesses of a move are
-    drawn from), one row each, and the lateral state it was taken at."""
+    drawn from, and the farther contacts of the way up), one row each, the lateral state it
+    was taken at and how far along Δ that place stands."""
 
     model: Model
     state: Floats
+    height: float           # the place's origin along Δ (a slide or a spin about Δ keeps it)
 
 
 class _Climb:
@@ -201,7 +202,8 @@ class _Climb:
         self._pool(place)
 
     def _pool(self, place: _Place) -> None:
-        self.pool = _Witnesses(self.model(place), place.state)
+        self.pool = _Witnesses(self.model(place), place.state,
+                               float(place.pose[:3, 3] @ self.search.push))
 
     def _beyond_pool(self, offsets: Floats) -> Bools:
         """Whether the pool is too far from each lateral state `offsets` (..., 3) away from
@@ -221,11 +223,11 @@ class _Climb:
             return (Status.LOST, LOST_CONTACT)
         scale = self.scale
         # a long move must gain what the proof could see; a short one anything (so that a
-        # spin the contacts determine weakly is followed to its top), and the near-active
-        # features' own way up joins the directions there (slide and spin combined as no
-        # fixed direction combines them); shorter than a finest move it is the only move:
-        # their first-order model holds that close, and to first order its move beats every
-        # direction of that length (the proof's own probes catch where it does not)
+        # spin the contacts determine weakly is followed to its top), and the contacts' way
+        # up joins the directions there (slide and spin combined as no fixed direction
+        # combines them); shorter than a finest move it is the only move: their first-order
+        # model holds that close, and to first order its move beats every direction of that
+        # length
         fine = scale <= t.fine_moves * self.finest
         directions = scale >= t.directions_from_moves * self.finest
         if not directions:
@@ -252,16 +254,29 @@ class _Climb:
             return False
         return True
 
-    def _uphill(self, scale: float) -> Floats:
+    def _uphill(self, scale: float, far_too: bool = False) -> Floats:
         """(0 or 1, 3) the move of `scale` the near-active features say climbs most (every
-        contact kept: slide and spin combined as no fixed direction combines them)."""
-        assert self.here is not None
-        s = self.search
-        near = self.model(self.here, self.contact_tol)
-        if len(near.gaps) == 0:
+        contact kept: slide and spin combined as no fixed direction combines them), the way
+        up; `far_too`: planned with the pool's farther features too, carried here to first
+        order (one beyond the contact tolerance can close before the travel such a move
+        promises: the proof's way up)."""
+        assert self.here is not None and self.pool is not None
+        s, pool = self.search, self.pool
+        contacts = self.model(self.here, self.contact_tol)
+        if len(contacts.gaps) == 0:
             return np.zeros((0, 3))
+        if far_too:
+            # the pool's features seen from here: their gaps after the lateral move from
+            # where the pool was taken, less how much farther along Δ this place stands;
+            # the nearer ones are this place's own
+            rise = float(self.here.pose[:3, 3] @ s.push) - pool.height
+            gaps = pool.model.gaps + pool.model.slopes @ (self.here.state - pool.state) - rise
+            far = gaps > self.contact_tol
+            contacts = Model(np.concatenate([contacts.gaps, gaps[far]]),
+                             np.concatenate([contacts.slopes, pool.model.slopes[far]]),
+                             np.concatenate([contacts.faces, pool.model.faces[far]]))
         press, drive = self.first_order(self.here)
-        x, promised = best_move(near, press, drive, scale * s.free)
+        x, promised = best_move(contacts, press, drive, scale * s.free)
         return x[None] if promised > 0.0 and x.any() else np.zeros((0, 3))
 
     def _inside(self, moves: Floats, length: float) -> Floats:
@@ -324,12 +339,11 @@ class _Climb:
                               t.room_share * self.finest)
             floor = float(np.min(near.gaps)) if len(near.gaps) else 0.0
             # the way up first, a quarter and a half of a finest move long: it follows a
-            # ridge narrower than the probe directions' spacing, where every one of them
-            # loses (the natural knee's tibia at flexion -8, varus 2: 0.042 mm from a
-            # quarter, none from any direction at one)
+            # ridge narrower than the probe directions' spacing, along which every one of
+            # them loses (docs/design.md, "How rest is proved")
             for scale in t.uphill_probe_moves:
                 length = scale * self.finest
-                moves = self._inside(self._uphill(length), length)
+                moves = self._inside(self._uphill(length, far_too=True), length)
                 self.proof_checks += len(moves)
                 found = self._probe(moves, length)
                 if found is not None:

@@ -54,13 +54,13 @@ class SettleTuning:
         grow: a scale that gained grows by this factor, up to...
         far_moves: ...this scale;
         shrink: one that found nothing shrinks by this factor, down to...
-        least_moves: ...this many finest moves (below one: a smooth objective's top is
-            found closer than the finest move; the proof then starts from the finest).
+        least_moves: ...this many finest moves; the proof then starts from the finest,
+            and tries the way up (below) shorter than that first.
         directions_from_moves: a scale of at least this many finest moves tries the probe
-            directions; a shorter one only the move the near-active features say climbs
-            most (their first-order model holds that close, and its best move beats every
-            direction of the same length; on the full tables 7.8 / 7.9 exact travels a
-            cell instead of 9.7 / 9.0, total and natural knee, with the proof's way up).
+            directions; a shorter one (the first near a rest carried over, or where the
+            proof's way up gained) only the way up: the move the contacts say climbs most
+            (their first-order model holds that close, and its best move beats every
+            direction of the same length).
         every_direction_moves: a scale of up to this many finest moves tries every probe
             direction; a longer one only the...
         far_tries: ...this many most promising (its witnesses, drawn near the pose, say
@@ -71,10 +71,9 @@ class SettleTuning:
             the engine ranks 8 in one pass over the pool and sorts it for more, and 8 were
             the cheapest on all three knees, docs/tables.md).
     Proof of rest (D5):
-        uphill_probe_moves: the proof first tries the near-active features' way up (the
-            move they say climbs most) at these lengths, each needing the lift: it follows
-            a ridge narrower than the probe directions' spacing, along which every
-            direction loses...
+        uphill_probe_moves: the proof first tries the way up at these lengths, each
+            needing the lift: it follows a ridge narrower than the probe directions'
+            spacing, along which every direction loses...
         probe_scales_moves: ...then the probe directions at these lengths.
         pressed_from: where the objective presses the body on at least this many times
             its load (`Objective.pressing`), the proof probes first at...
@@ -102,7 +101,7 @@ class SettleTuning:
     grow: float = 2.0
     far_moves: float = 16.0
     shrink: float = 0.25
-    least_moves: float = 0.25
+    least_moves: float = 1.0
     directions_from_moves: float = 1.0
     every_direction_moves: float = 4.0
     far_tries: int = 3
