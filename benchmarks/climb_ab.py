@@ -3,7 +3,8 @@
 Run: `python benchmarks/climb_ab.py --base REV [--knees tka,natural,default]
 [--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1]`. Loads the climb
 (`kneeseat_core/settle/climb.py`) of git revision REV (or a file) as a second module beside
-the working tree's, the rest of the package shared; builds each knee's slice in this
+the working tree's, run with REV's own tuning (`tuning.py`; a file's: the working tree's),
+the rest of the package shared; builds each knee's slice in this
 process (`kneeseat build --workers 1`) and settles every cell twice, once with each climb,
 which goes first alternating from cell to cell, the table built from the working tree's
 settles. A machine whose speed drifts within seconds (this one is shared) slows the two
@@ -26,35 +27,44 @@ from types import ModuleType
 from typing import Any
 
 import kneeseat_core.settle as settle_package
-from kneeseat_core.settle import climb as new_climb
+from kneeseat_core.settle import climb as new_climb, tuning as settle_tuning
 from kneeseat_core.sweep import chains
 from machine import describe_machine
 from slices import add_slice_options, build_slice, slice_knees, source_at
 
 CLIMB = 'kneeseat_core/settle/climb.py'
+TUNING = 'kneeseat_core/settle/tuning.py'
 
 
-def load_climb(source: str, where: Path) -> ModuleType:
-    """`source` loaded as a module of the settle package (its relative imports are the
-    working tree's)."""
-    path = where / 'climb_base.py'
+def load_base(source: str, where: Path, name: str) -> ModuleType:
+    """`source` loaded as the module `name` of the settle package (its relative imports are
+    the working tree's)."""
+    path = where / f'{name}.py'
     path.write_text(source)
-    spec = importlib.util.spec_from_file_location('kneeseat_core.settle.climb_base', path)
+    spec = importlib.util.spec_from_file_location(f'kneeseat_core.settle.{name}', path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     try:
         spec.loader.exec_module(module)
     except ImportError as err:
-        raise SystemExit(f'the base climb does not load beside this tree: {err}') from None
+        raise SystemExit(f'the base {name} does not load beside this tree: {err}') from None
     return module
+
+
+def base_climb(base: ModuleType, tuning: Any) -> Any:
+    """The base climb run with the base's own tuning, whatever the settle passes."""
+    def run(search: Any, start: Any, tissue: Any = None, _: Any = None, seeds: Any = None,
+            near_rest: bool = False) -> Any:
+        return base.run_climb(search, start, tissue, tuning, seeds, near_rest)
+    return run
 
 
 class Paired:
     """`chains.settle` replaced: every settle run with both climbs, timed."""
 
-    def __init__(self, base: ModuleType) -> None:
-        self.climbs = {'base': base.run_climb, 'new': new_climb.run_climb}
+    def __init__(self, base: Any) -> None:
+        self.climbs = {'base': base, 'new': new_climb.run_climb}
         self.seconds = {'base': 0.0, 'new': 0.0}
         self.settles = 0
         self.differ = 0
@@ -94,7 +104,10 @@ def main() -> int:
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix='climb_ab.') as tmp:
         where = Path(tmp)
-        base = load_climb(source_at(args.base, CLIMB), where)
+        # the base's own tuning (its constants steer it); a file's is the working tree's
+        tuning = settle_tuning.TUNING if Path(args.base).is_file() else \
+            load_base(source_at(args.base, TUNING), where, 'tuning_base').TUNING
+        base = base_climb(load_base(source_at(args.base, CLIMB), where, 'climb_base'), tuning)
         for knee in slice_knees(args):
             paired = Paired(base)
             setattr(chains, 'settle', paired)
