@@ -95,8 +95,8 @@ _NO_POOL = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
 @dataclass(frozen=True, slots=True, eq=False)
 class _Witnesses:
     """Every feature within a wide window of a place (the pool the witnesses of a move are
-    drawn from, and the farther contacts of the way up), one row each, the lateral state it
-    was taken at and how far along Δ that place stands."""
+    drawn from, and the farther contacts of the proof's way up), one row each, the lateral
+    state it was taken at and how far along Δ that place stands."""
 
     model: Model
     state: Floats
