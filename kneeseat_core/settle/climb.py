@@ -229,8 +229,8 @@ class _Climb:
         # model holds that close, and to first order its move beats every direction of that
         # length
         fine = scale <= t.fine_moves * self.finest
-        directions = scale >= t.directions_from_moves * self.finest
-        if not directions:
+        every_way = scale >= t.directions_from_moves * self.finest
+        if not every_way:
             moves = self._uphill(scale)
         elif fine:
             moves = np.concatenate([scale * self.directions, self._uphill(scale)])
@@ -243,7 +243,7 @@ class _Climb:
             return self.take(found)
         if found is not None:
             return found
-        if tries is None and directions:
+        if tries is None and every_way:
             # every direction failed at this scale: the proof need not probe it again (a
             # long step tries only its most promising moves, and a short one only the way
             # up, which spares the proof nothing)
@@ -254,30 +254,36 @@ class _Climb:
             return False
         return True
 
-    def _uphill(self, scale: float, far_too: bool = False) -> Floats:
-        """(0 or 1, 3) the move of `scale` the near-active features say climbs most (every
-        contact kept: slide and spin combined as no fixed direction combines them), the way
-        up; `far_too`: planned with the pool's farther features too, carried here to first
-        order (one beyond the contact tolerance can close before the travel such a move
-        promises: the proof's way up)."""
-        assert self.here is not None and self.pool is not None
-        s, pool = self.search, self.pool
-        contacts = self.model(self.here, self.contact_tol)
+    def _uphill(self, scale: float, contacts: Model | None = None) -> Floats:
+        """(0 or 1, 3) the move of `scale` the contacts say climbs most (every contact kept:
+        slide and spin combined as no fixed direction combines them), the way up; the
+        contacts: the near-active features, or `contacts` where given (`_with_pool`)."""
+        assert self.here is not None
+        if contacts is None:
+            contacts = self.model(self.here, self.contact_tol)
         if len(contacts.gaps) == 0:
             return np.zeros((0, 3))
-        if far_too:
-            # the pool's features seen from here: their gaps after the lateral move from
-            # where the pool was taken, less how much farther along Δ this place stands;
-            # the nearer ones are this place's own
-            rise = float(self.here.pose[:3, 3] @ s.push) - pool.height
-            gaps = pool.model.gaps + pool.model.slopes @ (self.here.state - pool.state) - rise
-            far = gaps > self.contact_tol
-            contacts = Model(np.concatenate([contacts.gaps, gaps[far]]),
-                             np.concatenate([contacts.slopes, pool.model.slopes[far]]),
-                             np.concatenate([contacts.faces, pool.model.faces[far]]))
         press, drive = self.first_order(self.here)
-        x, promised = best_move(contacts, press, drive, scale * s.free)
+        x, promised = best_move(contacts, press, drive, scale * self.search.free)
         return x[None] if promised > 0.0 and x.any() else np.zeros((0, 3))
+
+    def _with_pool(self, near: Model) -> Model:
+        """The near-active features `near` of the pose with the pool's farther ones carried
+        there to first order (one beyond the contact tolerance can close before the travel a
+        way up promises: the proof's); none where `near` has none."""
+        assert self.here is not None and self.pool is not None
+        pool = self.pool
+        if len(near.gaps) == 0:
+            return near
+        # the pool's features seen from here: their gaps after the lateral move from where
+        # the pool was taken, less how much farther along Δ this place stands; the nearer
+        # ones are this place's own
+        rise = float(self.here.pose[:3, 3] @ self.search.push) - pool.height
+        gaps = pool.model.gaps + pool.model.slopes @ (self.here.state - pool.state) - rise
+        far = gaps > self.contact_tol
+        return Model(np.concatenate([near.gaps, gaps[far]]),
+                     np.concatenate([near.slopes, pool.model.slopes[far]]),
+                     np.concatenate([near.faces, pool.model.faces[far]]))
 
     def _inside(self, moves: Floats, length: float) -> Floats:
         """The moves of `moves` (m, 3), each of max-norm `length`, shortened to stay inside
@@ -341,9 +347,10 @@ class _Climb:
             # the way up first, a quarter and a half of a finest move long: it follows a
             # ridge narrower than the probe directions' spacing, along which every one of
             # them loses (docs/design.md, "How rest is proved")
+            contacts = self._with_pool(self.model(self.here, self.contact_tol))
             for scale in t.uphill_probe_moves:
                 length = scale * self.finest
-                moves = self._inside(self._uphill(length, far_too=True), length)
+                moves = self._inside(self._uphill(length, contacts), length)
                 self.proof_checks += len(moves)
                 found = self._probe(moves, length)
                 if found is not None:
