@@ -295,6 +295,37 @@ def test_measuring_finds_the_first_probe_unrefuted_and_not_short(name: str) -> N
     assert found > 0
 
 
+@pytest.mark.parametrize('name', ['sphere_bowl', 'cylinder_groove', 'key_pocket'])
+def test_a_capped_search_keeps_the_nearest_features_beyond_what_it_keeps_whole(
+        name: str) -> None:
+    """With a cap, the features within `keep` of the travel all stay and of the farther
+    ones only the `cap` that close first (ties kept): the uncapped search's features so
+    filtered, in the same order, at the same travel; a cap the window never reaches
+    changes nothing."""
+    var = sc.variant(name, 'rotated')
+    sweep = SweepPair(var.fixed, var.moving, var.push / np.linalg.norm(var.push))
+    none = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
+
+    def measured(cap: int, keep: float) -> Touch:
+        _, kind, touch = sweep.measure(var.start[None], np.array([-math.inf]), np.zeros(1),
+                                       np.array([1e-3]), none, np.zeros((1, 3)), 0, 1e-7,
+                                       0.0, cap=cap, keep=keep)
+        assert kind == PLACE and touch is not None
+        return touch
+
+    whole = measured(0, 0.0)
+    gaps = whole.gaps
+    for cap, keep in ((10, 0.0), (10, 5e-5), (len(gaps) // 3, 1e-4), (len(gaps), 0.0)):
+        got = measured(cap, keep)
+        bound = max(np.sort(gaps)[min(cap, len(gaps)) - 1], whole.travel + keep)
+        kept = gaps <= bound
+        assert got.travel == whole.travel
+        assert np.array_equal(got.gaps, gaps[kept]) and np.array_equal(got.faces,
+                                                                       whole.faces[kept])
+        assert len(got.gaps) >= min(cap, len(gaps))
+    assert len(measured(10, 0.0).gaps) < len(gaps)       # the cap took some away
+
+
 def test_measure_refuses_bad_input_without_crashing() -> None:
     var = sc.variant('key_pocket', 'rotated')
     sweep = SweepPair(var.fixed, var.moving, var.push / np.linalg.norm(var.push))
@@ -307,6 +338,10 @@ def test_measure_refuses_bad_input_without_crashing() -> None:
     with pytest.raises(ValueError):
         sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)), 0,
                       1e-7, 0.0, seeds=np.array([[0, 10 ** 9]]))
+    for cap, keep in ((-1, 0.0), (1, -1e-4), (1, math.nan)):        # a cap, a keep
+        with pytest.raises(ValueError):
+            sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)),
+                          0, 1e-7, 0.0, cap=cap, keep=keep)
     index, kind, touch = sweep.measure(one, np.array([-math.inf]), np.zeros(1), np.ones(1),
                                        none, np.zeros((1, 3)), 0, 1e-7, 0.0)
     assert (index, kind) == (0, PLACE) and touch is not None and len(touch.gaps) > 0

@@ -438,6 +438,17 @@ struct Sweep {
     bool node_bounds(int a, int b, double &lo, double &hi);
     double planes_least(const double *const A[3], const double *const B[3], int32_t ta,
                         int32_t tb, const double lo[2], const double hi[2]);
+    // the features beyond `keep` past the best contact are kept only among the `cap` with
+    // the least gaps (0: all): on conforming surfaces a wide window holds hundreds that name
+    // the same few pairs a move closes first. `nearest` holds the least gaps recorded so
+    // far (a max-heap of at most `cap`); once it is full, the search's limit falls to the
+    // largest of them, or to `keep` past the best contact then, whichever is further (the
+    // best only falls, and the cap-th least gap of all is no larger, so nothing kept in the
+    // end lies beyond it, `kept_features`; a search that sets its limit anew starts
+    // afresh, `run`)
+    size_t cap = 0;
+    double keep = 0.0;
+    std::vector<double> nearest;
     double cutoff() const { return std::min(best + window, limit); }
     void triangle_pair(int32_t moving_face, int32_t fixed_face);
     void run(const int64_t *seeds = nullptr, Py_ssize_t count = 0);
@@ -686,6 +697,15 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     double sign = dot3(n, d) >= 0.0 ? 1.0 : -1.0;
     for (int k = 0; k < 3; ++k) f.normal[k] = sign * n[k];
     features.push_back(f);
+    if (cap != 0) {
+        nearest.push_back(f.gap);
+        std::push_heap(nearest.begin(), nearest.end());
+        if (nearest.size() > cap) {
+            std::pop_heap(nearest.begin(), nearest.end());
+            nearest.pop_back();
+        }
+        if (nearest.size() == cap) limit = std::min(limit, std::max(nearest.front(), best + keep));
+    }
 }
 
 // `seeds`: pairs of triangles (moving face, fixed face, as given) likely to close first
@@ -696,6 +716,7 @@ void Sweep::run(const int64_t *seeds, Py_ssize_t count) {
     best = kInf;
     buried = false;
     features.clear();
+    nearest.clear();
     const Body &fb = *fixed->body, &mb = *moving->body;
     if (fb.nodes.empty() || mb.nodes.empty()) return;
     const bool record = want_features;
@@ -904,6 +925,26 @@ PyObject *travels(PyObject *, PyObject *args) {
                          reinterpret_cast<const char *>(buried.data()), count, s.pairs);
 }
 
+// The features a search keeps: those within its window past the best contact, and of the
+// ones beyond `keep` past it only the `cap` with the least gaps, ties kept (Sweep::cutoff).
+// What it keeps does not hang on the order it met them in.
+std::vector<Feature> kept_features(const Sweep &s) {
+    std::vector<Feature> kept;
+    for (const Feature &f : s.features)
+        if (f.gap <= s.best + s.window) kept.push_back(f);
+    if (s.cap != 0 && kept.size() > s.cap) {
+        std::vector<double> gaps;
+        gaps.reserve(kept.size());
+        for (const Feature &f : kept) gaps.push_back(f.gap);
+        std::nth_element(gaps.begin(), gaps.begin() + (s.cap - 1), gaps.end());
+        const double bound = std::max(gaps[s.cap - 1], s.best + s.keep);
+        kept.erase(std::remove_if(kept.begin(), kept.end(),
+                                  [bound](const Feature &f) { return f.gap > bound; }),
+                   kept.end());
+    }
+    return kept;
+}
+
 // contacts(fixed_view, moving_view, pose, behind, window, limit[, short_of[, seeds]])
 //   -> (travel, buried, features (bytes of Feature), pairs); a travel below short_of is
 //   where the search stopped (the travel is at most that, the features are partial);
@@ -942,9 +983,7 @@ PyObject *contacts(PyObject *, PyObject *args) {
     PyBuffer_Release(&poses);
     if (pairs) PyBuffer_Release(&seeds);
     std::vector<Feature> kept;
-    if (!s.buried)
-        for (const Feature &f : s.features)
-            if (f.gap <= s.best + window) kept.push_back(f);
+    if (!s.buried) kept = kept_features(s);
     static const char nothing = 0;
     return Py_BuildValue("(dNy#l)", s.buried ? -kInf : s.best, PyBool_FromLong(s.buried),
                          kept.empty() ? &nothing : reinterpret_cast<const char *>(kept.data()),
@@ -1188,21 +1227,22 @@ Measured arrive(Sweep &s, const double *pose, double expected, double short_of, 
 
 // measure(fixed_view, moving_view, poses (m, 4, 4), needed (m,), expected (m,), windows (m,),
 // gaps (k,), slopes (k, 3), faces (k, 2), offsets (m, 3), count, standoff, deepest, bounds (7,),
-// start, seeds (c, 2) | None) -> (index, kind, travel, features, queries, pairs): from pose
-// `start` on, the first that none of its witnesses refutes (first_unrefuted; with count 0
-// none is asked) moved along d to contact (arrive: expected[i], short of needed[i], the
-// features within windows[i]); one found short is passed over. kind kPlace: the pose
+// start, seeds (c, 2) | None, cap, keep) -> (index, kind, travel, features, queries, pairs):
+// from pose `start` on, the first that none of its witnesses refutes (first_unrefuted; with
+// count 0 none is asked) moved along d to contact (arrive: expected[i], short of needed[i],
+// the features within windows[i], of those beyond `keep` only the `cap` nearest: 0 keeps
+// them all, `kept_features`); one found short is passed over. kind kPlace: the pose
 // `index` reached its travel, with the features (bytes of Feature); kLost: no contact
 // along d from it; index m: every pose refuted or short. A search starts from the pose's
 // witnesses, or from `seeds` where none are asked. A needed travel of +inf (or NaN) is
 // passed over.
 PyObject *measure(PyObject *, PyObject *args) {
     PyObject *fo, *mo, *po, *no, *eo, *wo, *go, *so, *qo, *oo, *bo, *co;
-    Py_ssize_t count, start;
-    double standoff, deepest;
+    Py_ssize_t count, start, cap;
+    double standoff, deepest, keep;
     Sweep s;
-    if (!PyArg_ParseTuple(args, "O!O!OOOOOOOOnddOnO", &ViewType, &fo, &ViewType, &mo, &po, &no, &eo, &wo, &go,
-                          &so, &qo, &oo, &count, &standoff, &deepest, &bo, &start, &co))
+    if (!PyArg_ParseTuple(args, "O!O!OOOOOOOOnddOnOnd", &ViewType, &fo, &ViewType, &mo, &po, &no, &eo, &wo, &go,
+                          &so, &qo, &oo, &count, &standoff, &deepest, &bo, &start, &co, &cap, &keep))
         return nullptr;
     if (!take_views(fo, mo, s)) return nullptr;
     Py_buffer bufs[10];
@@ -1233,14 +1273,15 @@ PyObject *measure(PyObject *, PyObject *args) {
     for (Py_ssize_t i = 0; ok && i < m; ++i) ok = windows[i] >= 0.0;
     const double *expected_ = ok ? static_cast<const double *>(bufs[2].buf) : nullptr;
     for (Py_ssize_t i = 0; ok && i < m; ++i) ok = std::isfinite(expected_[i]);
-    if (ok && (!(standoff > 0.0) || !std::isfinite(standoff) || !(deepest >= 0.0) || count < 0 || start < 0))
+    if (ok && (!(standoff > 0.0) || !std::isfinite(standoff) || !(deepest >= 0.0) || count < 0 || start < 0 ||
+               cap < 0 || !(keep >= 0.0)))
         ok = false;
     if (!ok) {
         if (!PyErr_Occurred())
             PyErr_SetString(PyExc_ValueError, "measure: poses (m, 4, 4), needed, finite expected and windows "
                                               "(m,), gaps (k,), slopes (k, 3), faces (k, 2) and seeds (c, 2) of "
                                               "face indices, offsets (m, 3), bounds (7,); standoff positive; "
-                                              "windows, count, deepest and start not negative");
+                                              "windows, count, deepest, start, cap and keep not negative");
         for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
         return nullptr;
     }
@@ -1253,6 +1294,7 @@ PyObject *measure(PyObject *, PyObject *args) {
     std::vector<int32_t> vertices, stack;
     long queries = 0;
     Measured kind = kShort;
+    s.keep = keep;
     Py_ssize_t i = start;
     for (; i < m; ++i) {
         if (std::isnan(needed[i]) || needed[i] == kInf) continue;
@@ -1266,14 +1308,14 @@ PyObject *measure(PyObject *, PyObject *args) {
             from = picked.data();
             from_count = static_cast<Py_ssize_t>(picked.size() / 2);
         }
+        // a window that reaches no further than what is kept whole needs no cap
+        s.cap = windows[i] > keep ? static_cast<size_t>(cap) : 0;
         kind = arrive(s, p + 16 * i, expected[i], needed[i], windows[i], standoff, bounds, from, from_count, queries);
         if (kind != kShort) break;
     }
     for (int j = 0; j < held; ++j) PyBuffer_Release(&bufs[j]);
     std::vector<Feature> kept;
-    if (i < m && kind == kPlace)
-        for (const Feature &f : s.features)
-            if (f.gap <= s.best + s.window) kept.push_back(f);
+    if (i < m && kind == kPlace) kept = kept_features(s);
     static const char nothing = 0;
     return Py_BuildValue("(nidy#ll)", std::min(i, m), static_cast<int>(i < m ? kind : kShort),
                          i < m && kind == kPlace ? s.best : -kInf,
@@ -1287,7 +1329,7 @@ PyMethodDef module_methods[] = {
      "deepest, start) -> (index, witnesses)"},
     {"measure", measure, METH_VARARGS,
      "measure(fixed_view, moving_view, poses, needed, expected, windows, gaps, slopes, faces, offsets, count, "
-     "standoff, deepest, bounds, start, seeds) -> (index, kind, travel, features, queries, pairs)"},
+     "standoff, deepest, bounds, start, seeds, cap, keep) -> (index, kind, travel, features, queries, pairs)"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

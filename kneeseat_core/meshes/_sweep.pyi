@@ -18,5 +18,5 @@ def first_unrefuted(fixed: View, moving: View, poses: Any, needed: Any, gaps: An
                     start: int) -> tuple[int, bytes]: ...
 def measure(fixed: View, moving: View, poses: Any, needed: Any, expected: Any, windows: Any,
             gaps: Any, slopes: Any, faces: Any, offsets: Any, count: int, standoff: float,
-            deepest: float, bounds: Any, start: int, seeds: Any
+            deepest: float, bounds: Any, start: int, seeds: Any, cap: int, keep: float
             ) -> tuple[int, int, float, bytes, int, int]: ...

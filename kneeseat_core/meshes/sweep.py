@@ -272,8 +272,8 @@ class SweepPair:
 
     def measure(self, poses: Floats, needed: Floats, expected: Floats, windows: Floats,
                 pool: tuple[Floats, Floats, Ints], offsets: Floats, count: int, standoff: float,
-                deepest: float, start: int = 0, seeds: Ints | None = None
-                ) -> tuple[int, int, Touch | None]:
+                deepest: float, start: int = 0, seeds: Ints | None = None, cap: int = 0,
+                keep: float = 0.0) -> tuple[int, int, Touch | None]:
         """From `start` on, the first of `poses` (m, 4, 4) that none of its witnesses
         refutes (`first_unrefuted`, with `count` witnesses and `standoff` the depth below a
         pose a pair is not counted at; none asked with `count` 0) and whose search does not
@@ -283,7 +283,9 @@ class SweepPair:
         while the lowered pose is buried); or its index and `LOST` where no contact lies
         along Δ from it; or (m, SHORT, None) where every pose is refuted or short. A needed
         travel of +inf is passed over; -inf stops no search. A search starts from the pose's
-        witnesses, or from `seeds` where none are asked."""
+        witnesses, or from `seeds` where none are asked. `cap` (0: none): of the features
+        more than `keep` beyond the travel only the `cap` that close first are kept (ties
+        kept), and the search prunes by them as by the window."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         gaps, slopes, faces = pool
         index, kind, travel, raw, queries, pairs = _sweep.measure(
@@ -296,7 +298,8 @@ class SweepPair:
             np.ascontiguousarray(faces, dtype=np.int64),
             np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
             float(deepest), self._bounds, int(start),
-            None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64))
+            None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64),
+            int(cap), float(keep))
         self.queries += queries
         self.pairs += pairs
         if kind != PLACE:
