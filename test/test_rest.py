@@ -297,6 +297,8 @@ def test_the_climbs_windows_must_hold_what_it_uses() -> None:
         SettleTuning(window_res=TUNING.contact_tol_res)
     with pytest.raises(ValueError, match='pool_window_res'):
         SettleTuning(pool_window_res=0.5 * TUNING.window_res)
+    with pytest.raises(ValueError, match='pool_cap'):
+        SettleTuning(pool_cap=-1)
     assert TUNING.window_res > TUNING.contact_tol_res
 
 
@@ -305,15 +307,21 @@ def test_a_wider_place_window_settles_the_same_bit_for_bit(
         name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """A place's features beyond the contact tolerance are never used (a place that
     becomes the witnesses' pool is measured again with the pool's window), so the place's
-    window moves the cost only: with it as wide as the pool's, every settle is the same."""
+    window moves the cost only: with it as wide as the pool's, every settle is the same.
+    Without the pool's cap the same travels are measured too; with it (its features beyond
+    a place's window capped, none beyond a window as wide as the pool's) the witnesses
+    differ, which moves the travels measured and nothing else."""
     var = sc.variant(name, 'tilted')
-    narrow = settle(var.fixed, var.moving, var.start, params(var))
-    monkeypatch.setattr(settle_package, 'TUNING',
-                        replace(TUNING, window_res=TUNING.pool_window_res))
-    wide = settle(var.fixed, var.moving, var.start, params(var))
-    assert narrow.converged and wide.converged, (narrow.reason, wide.reason)
-    assert np.array_equal(narrow.pose, wide.pose)
-    assert narrow.iterations == wide.iterations and narrow.travels == wide.travels
+    for cap in (0, TUNING.pool_cap):
+        monkeypatch.setattr(settle_package, 'TUNING', replace(TUNING, pool_cap=cap))
+        narrow = settle(var.fixed, var.moving, var.start, params(var))
+        monkeypatch.setattr(settle_package, 'TUNING',
+                            replace(TUNING, pool_cap=cap, window_res=TUNING.pool_window_res))
+        wide = settle(var.fixed, var.moving, var.start, params(var))
+        assert narrow.converged and wide.converged, (narrow.reason, wide.reason)
+        assert np.array_equal(narrow.pose, wide.pose)
+        assert narrow.iterations == wide.iterations
+        assert narrow.travels == wide.travels or cap != 0
 
 
 def test_a_dome_is_left_with_lost_contact() -> None:

@@ -32,10 +32,17 @@ class SettleTuning:
             the pool's window)...
         pool_window_res: ...and the witnesses' pool those within this, taken at the first
             contact and again wherever the climb has moved (at least `window_res`: the pool
-            only names the pairs a refutation asks, which is exact whichever it asks, so
-            this moves the cost, never a table; a wider pool costs a wider first touch and
-            more features to pick from for every move)...
-        pool_reach_moves: ...this many finest moves from where it was taken.
+            names the pairs a refutation asks, which is exact whichever it asks, and the
+            farther features the proof's way up plans with, which it then measures: this
+            moves the cost, and a table only where a way up moves differently; a wider pool
+            costs a wider first touch and more features to pick from for every move)...
+        pool_cap: of the pool's features beyond a place's window, only this many, those
+            that close first (ties kept; 0: every one): on conforming surfaces the pool's
+            window holds hundreds more that name the same few pairs (the default knee's
+            first contacts hold 914 on average, 352 under this cap), each of them ranked for
+            every move's witnesses and carried into the proof's way up; the search prunes
+            by the ones it keeps as by the window...
+        pool_reach_moves: ...the pool serves this many finest moves from where it was taken.
         contact_tol_res: the features within this of touching are the near-active ones (the
             model that orders the moves and prunes the proof) and the reported contacts.
         room_share: a move of length l is modelled with the features that hold for a slide
@@ -91,6 +98,7 @@ class SettleTuning:
     standoff_res: float = 1.0 / 1024.0
     window_res: float = 0.26
     pool_window_res: float = 0.6
+    pool_cap: int = 256
     pool_reach_moves: float = 4.0
     contact_tol_res: float = 0.25
     room_share: float = 0.25
@@ -120,6 +128,8 @@ class SettleTuning:
         if not self.window_res - self.contact_tol_res >= _WINDOW_MARGIN_RES:
             raise ValueError(f'window_res ({self.window_res}) must exceed contact_tol_res '
                              f'({self.contact_tol_res}) by at least {_WINDOW_MARGIN_RES}')
+        if self.pool_cap < 0:
+            raise ValueError(f'pool_cap ({self.pool_cap}) must not be negative (0: no cap)')
         if not self.pool_window_res >= self.window_res:
             raise ValueError(f'pool_window_res ({self.pool_window_res}) must be at least '
                              f'window_res ({self.window_res})')
