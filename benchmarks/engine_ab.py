@@ -13,13 +13,16 @@ call the same, bit for bit, and per run the seconds of each and their ratio (new
 The first, untimed pass builds each engine's views and fills their bounds: the runs time
 the searches themselves, not a view's first filling. With `--cold` each settle's calls
 start from new views instead, as a build's do (a view per cell and body: the push turns
-with the attitude), and a run times the views' making and filling with the searches.
+with the attitude), and a run times the views' making and filling with the searches. An
+engine from before the pool's cap (its `measure` takes no `cap`) is asked without it: where
+the cap keeps fewer features, the two answer differently.
 """
 from __future__ import annotations
 
 import argparse
 import copy
 import importlib
+import inspect
 from pathlib import Path
 import sys
 import tempfile
@@ -60,10 +63,13 @@ def recorded_calls(knee: str, args: argparse.Namespace,
     """Every `SweepPair.measure` call of `knee`'s slice: the pair and its arguments."""
     calls: list[tuple[Any, tuple[Any, ...]]] = []
     original = sweep.SweepPair.measure
+    signature = inspect.signature(original)
 
     def keep(pair: Any, *args: Any, **kwargs: Any) -> Any:
-        given = args + tuple(kwargs[k] for k in ('start', 'seeds') if k in kwargs)
-        calls.append((pair, copy.deepcopy(given)))
+        # every argument in the signature's order, defaults filled in, however it was given
+        bound = signature.bind(pair, *args, **kwargs)
+        bound.apply_defaults()
+        calls.append((pair, copy.deepcopy(tuple(bound.arguments.values())[1:])))
         return original(pair, *args, **kwargs)
     sweep.SweepPair.measure = keep      # type: ignore[method-assign]
     try:
@@ -99,9 +105,11 @@ class Engine:
     def call(self, pair: Any, args: tuple[Any, ...]) -> tuple[Any, ...]:
         """The engine's arguments for one recorded call (SweepPair.measure's conversions)."""
         poses, needed, expected, windows, (gaps, slopes, faces), offsets, count, standoff, \
-            deepest, *rest = args
-        start = rest[0] if rest else 0
-        seeds = rest[1] if len(rest) > 1 else None
+            deepest, start, seeds, *capped = args
+        # the pool's cap and what it keeps whole, for an engine that takes them (one from
+        # before them keeps every feature within the window)
+        cap = (int(capped[0]), float(capped[1])) \
+            if capped and 'cap' in (self.module.measure.__doc__ or '') else ()
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         turn = poses[0][:3, :3].T @ pair.push
         floats = [np.ascontiguousarray(a, dtype=np.float64)
@@ -110,7 +118,7 @@ class Engine:
                 *floats, np.ascontiguousarray(faces, dtype=np.int64),
                 np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
                 float(deepest), pair._bounds, int(start),
-                None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64))
+                None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64), *cap)
 
 
 def compare(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine],
