@@ -36,13 +36,13 @@ class SettleTuning:
             farther features the proof's way up plans with, which it then measures: this
             moves the cost, and a table only where a way up moves differently; a wider pool
             costs a wider first touch and more features to pick from for every move)...
-        pool_cap: of the pool's features beyond a place's window, only this many, those
-            that close first (ties kept; 0: every one): on conforming surfaces the pool's
+        pool_reach_moves: ...this many finest moves from where it was taken.
+        pool_cap: the pool keeps, of its features beyond a place's window, only this many,
+            those that close first (ties kept; 0: every one): on conforming surfaces its
             window holds hundreds more that name the same few pairs (the default knee's
             first contacts hold 914 on average, 352 under this cap), each of them ranked for
             every move's witnesses and carried into the proof's way up; the search prunes
-            by the ones it keeps as by the window...
-        pool_reach_moves: ...the pool serves this many finest moves from where it was taken.
+            by the ones it keeps as by the window.
         contact_tol_res: the features within this of touching are the near-active ones (the
             model that orders the moves and prunes the proof) and the reported contacts.
         room_share: a move of length l is modelled with the features that hold for a slide
@@ -98,8 +98,8 @@ class SettleTuning:
     standoff_res: float = 1.0 / 1024.0
     window_res: float = 0.26
     pool_window_res: float = 0.6
-    pool_cap: int = 256
     pool_reach_moves: float = 4.0
+    pool_cap: int = 256
     contact_tol_res: float = 0.25
     room_share: float = 0.25
     fine_moves: float = 2.0
