@@ -9,7 +9,7 @@ model, converged flags, statuses and metadata are its parameters.
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Mapping, Sequence
 import fcntl
 import hashlib
 import itertools
@@ -33,6 +33,23 @@ SHARED_TOOLS = REPO.parent / 'shared' / 'tools'
 TF2_MSGS_BUILD = SHARED_TOOLS / 'tf2_msgs' / 'build'
 ROS2CLI_INSTALL = SHARED_TOOLS / 'ros2cli' / 'install'
 _DOMAIN_COUNTER = itertools.count()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
+                              ) -> Generator[None, Any, None]:
+    """A failed test that ran a node (`ros_helpers.ServerProcess` writes its stderr to
+    server.err under the test's tmp_path) shows that stderr's last lines in its report:
+    a failure seen once in CI can then be read without the test's files, which pytest
+    removes three runs later."""
+    outcome = yield
+    report = outcome.get_result()
+    tmp = getattr(item, 'funcargs', {}).get('tmp_path')
+    if report.failed and report.when == 'call' and isinstance(tmp, Path):
+        for err in sorted(tmp.rglob('server.err')):
+            lines = err.read_text(errors='replace').splitlines()[-40:]
+            report.sections.append((f'node stderr ({err.relative_to(tmp)}, last 40 lines)',
+                                    '\n'.join(lines)))
 
 
 def fcl_object(mesh: Any) -> Any:
