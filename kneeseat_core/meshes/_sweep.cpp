@@ -926,7 +926,7 @@ PyObject *travels(PyObject *, PyObject *args) {
 }
 
 // The features a search keeps: those within its window past the best contact, and of the
-// ones beyond `keep` past it only the `cap` with the least gaps, ties kept (Sweep::cutoff).
+// ones beyond `keep` past it only the `cap` with the least gaps, ties kept (Sweep::cap).
 // What it keeps does not hang on the order it met them in.
 std::vector<Feature> kept_features(const Sweep &s) {
     std::vector<Feature> kept;

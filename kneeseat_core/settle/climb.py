@@ -150,7 +150,7 @@ class _Climb:
         _, kind, touch = self.sweep.measure(
             target[None], np.array([short_of]), np.array([expected]),
             np.array([window * self.search.params.resolution_m]), _NO_POOL, np.zeros((1, 3)), 0,
-            self.standoff, 0.0, 0, seeds, t.pool_cap, self.windows[0])
+            self.standoff, 0.0, 0, seeds, cap=t.pool_cap, keep=self.windows[0])
         if kind == SHORT:
             return _SHORT
         if touch is None:
