@@ -102,8 +102,11 @@ class KneeConfig:
     source: dict[str, Any]       # the config as read (for the table's metadata)
     ligaments: LigamentSet | None = None   # the soft tissue, if the config names it
     # turns computed so far, by (flexion fraction, varus fraction, flexion, varus): a sweep
-    # asks each cell's several times (its job, its params, the ribs that learn from it)
+    # asks each cell's several times (its job, its params, the ribs that learn from it);
+    # and the turns about one axis they are made of, by (axis, angle): a grid's few angles
     _turns: dict[tuple[float, float, float, float], Floats] = field(
+        default_factory=dict, init=False, repr=False)
+    _axis_turns: dict[tuple[str, float], Floats] = field(
         default_factory=dict, init=False, repr=False)
 
     def attitude(self, body: BodySpec, flexion_rad: float, varus_rad: float) -> Floats:
@@ -118,9 +121,19 @@ class KneeConfig:
         found = self._turns.get(key)
         if found is None:
             found = self._turns[key] = (
-                rotation_about(self.axes.flexion, flexion_fraction * flexion_rad)
-                @ rotation_about(self.axes.varus, varus_fraction * varus_rad))
+                self._axis_turn('flexion', flexion_fraction * flexion_rad)
+                @ self._axis_turn('varus', varus_fraction * varus_rad))
         return found.copy()
+
+    def _axis_turn(self, axis: str, angle_rad: float) -> Floats:
+        """(3, 3) the turn by `angle_rad` about the knee's `axis` ('flexion' or 'varus'),
+        kept (read only)."""
+        key = (axis, angle_rad)
+        found = self._axis_turns.get(key)
+        if found is None:
+            found = self._axis_turns[key] = rotation_about(getattr(self.axes, axis), angle_rad)
+            found.flags.writeable = False
+        return found
 
     def attitudes(self) -> Floats:
         """(B, F, V, 3, 3) every body's attitude at every grid cell."""
@@ -146,15 +159,16 @@ class KneeConfig:
         turn = self.push_turn(body, flexion_rad, varus_rad)
         push = turn @ np.asarray(body.push)
         lock = None if body.locked_slide is None else turn @ np.asarray(body.locked_slide)
-        params = replace(self.settle, push=(float(push[0]), float(push[1]), float(push[2])),
-                         locked_slide=None if lock is None else
-                         (float(lock[0]), float(lock[1]), float(lock[2])))
+        changes: dict[str, Any] = {
+            'push': (float(push[0]), float(push[1]), float(push[2])),
+            'locked_slide': None if lock is None else (float(lock[0]), float(lock[1]),
+                                                       float(lock[2]))}
         if body.envelope is not None:
-            params = replace(params, max_slide_m=body.envelope[0],
-                             max_spin_rad=body.envelope[1], envelope_holds=True)
+            changes.update(max_slide_m=body.envelope[0], max_spin_rad=body.envelope[1],
+                           envelope_holds=True)
         if body.load_n is not None:
-            params = replace(params, load_n=body.load_n, load_toward=body.load_toward)
-        return params
+            changes.update(load_n=body.load_n, load_toward=body.load_toward)
+        return replace(self.settle, **changes)     # one replace: each validates the params
 
     def placed_before(self, body: BodySpec) -> tuple[str, ...]:
         """The bodies already where they rest when `body` is settled at a cell: the

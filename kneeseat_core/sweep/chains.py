@@ -148,9 +148,18 @@ def mean_change(steps: Sequence[tuple[Pose, Floats, Pose, Floats]], attitude: Fl
     """The mean of the changes of rest over `steps` (each: the older rest and its attitude,
     the newer rest and its attitude), each step's two rests carried to `attitude` first
     (`rest_change`; the mean turn is made a rotation where it is applied, `warm_start`)."""
-    out: Pose = np.mean([rest_change(carried(older, older_attitude, attitude),
-                                     carried(newer, newer_attitude, attitude))
-                         for older, older_attitude, newer, newer_attitude in steps], axis=0)
+    # the steps at once, each product as `carried` and `rest_change` make it (a stack of
+    # products is the products, bit for bit), each rest's turn taken to `attitude` first
+    older, older_attitudes, newer, newer_attitudes = (np.array(a) for a in zip(*steps))
+    to_older = attitude @ older_attitudes.transpose(0, 2, 1)
+    to_newer = attitude @ newer_attitudes.transpose(0, 2, 1)
+    changes = np.zeros((len(steps), 4, 4))
+    changes[:, :3, :3] = (to_newer @ newer[:, :3, :3]) @ (to_older @ older[:, :3, :3]).transpose(
+        0, 2, 1)
+    changes[:, :3, 3] = (to_newer @ newer[:, :3, 3, None])[..., 0] \
+        - (to_older @ older[:, :3, 3, None])[..., 0]
+    changes[:, 3, 3] = 1.0
+    out: Pose = np.mean(changes, axis=0)
     return out
 
 

@@ -200,8 +200,9 @@ class _Sweep:
         self.checks = 0
         self.travels = 0
         self.fcl = 0
-        self.centre_attitudes = [config.attitude(spec, flex[self.f0], var[self.v0])
-                                 for spec in config.bodies]
+        self.attitudes = config.attitudes()       # (B, F, V, 3, 3): every cell's, asked often
+        self.attitudes.flags.writeable = False
+        self.centre_attitudes = [self.attitudes[b, self.f0, self.v0] for b in range(nb)]
         self.anchors = np.array([neutral_pose(a0) for a0 in self.centre_attitudes])
         self.depends = [config.depends_on(b) for b in config.bodies]
         # the fibres acting on each body, laid out once (the patent's method has none)
@@ -225,7 +226,7 @@ class _Sweep:
         config, flex, var = self.config, self.config.flexion_rad, self.config.varus_rad
         spec = config.bodies[body]
         return ChainJob(self.scene, body, tuple(cells),
-                        np.array([config.attitude(spec, flex[f], var[v]) for f, v in cells]),
+                        np.array([self.attitudes[body, f, v] for f, v in cells]),
                         tuple(config.params(spec, flex[f], var[v]) for f, v in cells),
                         start, start_attitude, self.anchors[body], self.centre_attitudes[body],
                         self.soft_tissue(body, cells), beside, at_rest)
@@ -281,20 +282,18 @@ class _Sweep:
         beside it made over the same varus step (from the spine for the first), at the
         cell's attitude (`mean_change`); NaN where no rib beside converged at both ends of
         the step. None: the rib learns from no rib beside it."""
-        config, spec = self.config, self.config.bodies[body]
-        flex, var = config.flexion_rad, config.varus_rad
-        beside = ribs_beside(f, self.f0, len(flex))
+        beside = ribs_beside(f, self.f0, len(self.config.flexion_rad))
         if not beside:
             return None
         out = np.full((len(cells), 4, 4), np.nan)
         before = self.v0
+        poses, attitudes = self.poses[body], self.attitudes[body]
         for i, (_, v) in enumerate(cells):
-            steps = [(self.poses[body, g, before], config.attitude(spec, flex[g], var[before]),
-                      self.poses[body, g, v], config.attitude(spec, flex[g], var[v]))
+            steps = [(poses[g, before], attitudes[g, before], poses[g, v], attitudes[g, v])
                      for g in beside
                      if self.converged[body, g, before] and self.converged[body, g, v]]
             if steps:
-                out[i] = mean_change(steps, config.attitude(spec, flex[f], var[v]))
+                out[i] = mean_change(steps, attitudes[f, v])
             before = v
         return out
 
@@ -315,13 +314,12 @@ class _Sweep:
             for g in range(f - step, self.f0, -step):       # nearest first
                 if self.converged[b, g, self.v0]:
                     return self.job(b, chain.cells, self.poses[b, g, self.v0],
-                                    config.attitude(spec, flex[g], var[self.v0]))
+                                    self.attitudes[b, g, self.v0])
             return self.job(b, chain.cells, self.poses[b, self.f0, self.v0],
                             self.centre_attitudes[b],
                             at_rest=bool(self.converged[b, self.f0, self.v0]))
         return self.job(b, chain.cells, self.poses[b, f, self.v0],
-                        config.attitude(spec, flex[f], var[self.v0]),
-                        self.changes_beside(b, f, chain.cells))
+                        self.attitudes[b, f, self.v0], self.changes_beside(b, f, chain.cells))
 
     def take(self, res: ChainResult) -> list[Cell]:
         """Put a finished chain's cells in place; return the cells now settled (with a
