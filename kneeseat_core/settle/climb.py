@@ -35,6 +35,7 @@ what it is: docs/design.md, "The default method".
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cache
 import itertools
 import math
 import time
@@ -59,6 +60,16 @@ _DIRECTIONS = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3)
 _DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
 
 End = tuple[int, str]    # (Status code, reason)
+
+
+@cache
+def _directions(free: bytes) -> Floats:
+    """The probe directions that move only the free coordinates (`Search.free`, as bytes:
+    every settle of a sweep asks the same), read only."""
+    mask = np.frombuffer(free, dtype=np.float64) == 0
+    out: Floats = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & mask, axis=1)]
+    out.flags.writeable = False
+    return out
 
 
 @dataclass(slots=True, eq=False)
@@ -123,7 +134,7 @@ class _Climb:
         self.gain = self.objective.precision * tuning.move_gain_res * p.resolution_m
         self.scale = (tuning.near_first_moves if near_rest else tuning.first_moves) \
             * self.finest
-        self.directions = _DIRECTIONS[~np.any((_DIRECTIONS != 0) & (search.free == 0), axis=1)]
+        self.directions = _directions(search.free.tobytes())
         self.planner = Planner(search, self.objective, self.arm, self.standoff)
         self.here: _Place | None = None
         self.pool: _Witnesses | None = None
