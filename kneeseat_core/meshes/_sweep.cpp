@@ -814,10 +814,15 @@ int body_init(PyBody *self, PyObject *args, PyObject *) {
     if (!ok) {
         PyErr_SetString(PyExc_ValueError, "Body: vertices (n, 3), faces (m, 3) indexing them, facing (m,)");
     } else {
-        delete self->body;
-        self->body = new Body();
-        make_body(*self->body, static_cast<const double *>(vb.buf), nv, faces, nf,
+        // the hierarchy is built on the buffers alone: other threads may run meanwhile (a
+        // scene's bodies are built side by side, kneeseat_core/sweep/scene.py)
+        Body *body = new Body();
+        Py_BEGIN_ALLOW_THREADS
+        make_body(*body, static_cast<const double *>(vb.buf), nv, faces, nf,
                   static_cast<const int8_t *>(sb.buf));
+        Py_END_ALLOW_THREADS
+        delete self->body;
+        self->body = body;
     }
     PyBuffer_Release(&vb); PyBuffer_Release(&fb); PyBuffer_Release(&sb);
     return ok ? 0 : -1;

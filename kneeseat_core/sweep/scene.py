@@ -13,8 +13,11 @@ spec).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 import threading
+
+import trimesh
 
 from kneeseat_core.meshes import load_meshes, RigidBody, sweep_body, Units
 
@@ -47,6 +50,7 @@ _SCENES: dict[SceneSpec, tuple[RigidBody, tuple[RigidBody, ...]]] = {}
 _SCENES_LOCK = threading.Lock()     # Dask workers may run several chains in threads
 _MESH_COPIES: dict[str, str] = {}   # SHA-256 -> local file with those bytes
 _SCENE_BUILDS = 0
+_BUILDERS = 2                       # threads building the bodies' hierarchies
 
 
 def register_mesh_copy(sha256: str, path: str) -> None:
@@ -61,6 +65,13 @@ def register_mesh_copy(sha256: str, path: str) -> None:
 def scene_builds() -> int:
     """How many scenes this process has built (meshes loaded, BVHs made) so far."""
     return _SCENE_BUILDS
+
+
+def _body(mesh: trimesh.Trimesh) -> RigidBody:
+    """`mesh` as a rigid body with its hierarchies: python-fcl's and the exact travel's."""
+    body = RigidBody.from_mesh(mesh)
+    sweep_body(body)
+    return body
 
 
 def _mesh_source(spec: SceneSpec, index: int, path: str) -> str:
@@ -82,14 +93,18 @@ def scene_bodies(spec: SceneSpec, quiet: bool = True) -> tuple[RigidBody, tuple[
     global _SCENE_BUILDS
     with _SCENES_LOCK:
         if spec not in _SCENES:
-            groups, bodies_list, index = spec.groups(), [], 0
-            for group in groups:
-                sources = [_mesh_source(spec, index + k, p) for k, p in enumerate(group)]
-                index += len(group)
-                body = RigidBody.from_mesh(load_meshes(sources, spec.units, quiet))
-                sweep_body(body)
-                bodies_list.append(body)
-            bodies = tuple(bodies_list)
+            # the meshes are loaded in turn here (their warnings in order) while a body
+            # loaded already gets its hierarchies on another thread: python-fcl and the
+            # engine build them without the GIL, so a start-up that would leave the other
+            # core idle uses it
+            with ThreadPoolExecutor(max_workers=_BUILDERS) as builders:
+                building, index = [], 0
+                for group in spec.groups():
+                    sources = [_mesh_source(spec, index + k, p) for k, p in enumerate(group)]
+                    index += len(group)
+                    building.append(builders.submit(_body, load_meshes(sources, spec.units,
+                                                                       quiet)))
+                bodies = tuple(b.result() for b in building)
             _SCENES.clear()          # one scene per worker at a time keeps memory flat
             _SCENES[spec] = (bodies[0], bodies[1:])
             _SCENE_BUILDS += 1
