@@ -40,9 +40,9 @@ class SettleTuning:
         pool_cap: the pool keeps, of its features beyond a place's window, only this many,
             those that close first (ties kept; 0: every one): on conforming surfaces its
             window holds hundreds more that name the same few pairs (the default knee's
-            first contacts hold 914 on average, 352 under this cap), each of them ranked for
-            every move's witnesses and carried into the proof's way up; the search prunes
-            by the ones it keeps as by the window.
+            first contacts held 914 on average at 0.6 resolutions, 352 under this cap),
+            each of them ranked for every move's witnesses and carried into the proof's
+            way up; the search prunes by the ones it keeps as by the window.
         contact_tol_res: the features within this of touching are the near-active ones (the
             model that orders the moves and prunes the proof) and the reported contacts.
         room_share: a move of length l is modelled with the features that hold for a slide
@@ -97,7 +97,7 @@ class SettleTuning:
 
     standoff_res: float = 1.0 / 1024.0
     window_res: float = 0.26
-    pool_window_res: float = 0.6
+    pool_window_res: float = 0.45
     pool_reach_moves: float = 4.0
     pool_cap: int = 256
     contact_tol_res: float = 0.25
