@@ -1,10 +1,12 @@
 """Two revisions of the climb timed on the same settles, settle by settle.
 
-Run: `python benchmarks/climb_ab.py --base REV [--knees tka,natural,default]
-[--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1]`. Loads the climb
-(`kneeseat_core/settle/climb.py`) of git revision REV (or a file) as a second module beside
-the working tree's, run with REV's own tuning (`tuning.py`; a file's: the working tree's),
-the rest of the package shared; builds each knee's slice in this
+Run: `python benchmarks/climb_ab.py --base REV [--tune NAME=VALUE ...]
+[--knees tka,natural,default] [--flexion-grid=-30,-50,-1] [--varus-grid=-10,10,1]`. Loads
+the climb (`kneeseat_core/settle/climb.py`) of git revision REV (or a file) as a second
+module beside the working tree's, run with REV's own tuning (`tuning.py`; a file's: the
+working tree's), the rest of the package shared; the working tree's climb runs with its
+tuning, each `--tune` value replaced (`--base HEAD --tune pool_window_res=0.5`: one
+constant tried against the code as it is). Builds each knee's slice in this
 process (`kneeseat build --workers 1`) and settles every cell twice, once with each climb,
 which goes first alternating from cell to cell, the table built from the working tree's
 settles. A machine whose speed drifts within seconds (this one is shared) slows the two
@@ -18,6 +20,8 @@ package, whole builds.
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
 import importlib.util
 from pathlib import Path
 import sys
@@ -52,23 +56,44 @@ def load_base(source: str, where: Path, name: str) -> ModuleType:
     return module
 
 
-def base_climb(base: ModuleType, tuning: Any) -> Any:
-    """The base climb run with the base's own tuning, whatever the settle passes."""
+def climb_with(climb: ModuleType, tuning: Any) -> Any:
+    """`climb`'s `run_climb` run with `tuning`, whatever the settle passes."""
     def run(search: Any, start: Any, tissue: Any = None, _: Any = None, seeds: Any = None,
             near_rest: bool = False) -> Any:
-        return base.run_climb(search, start, tissue, tuning, seeds, near_rest)
+        return climb.run_climb(search, start, tissue, tuning, seeds, near_rest)
     return run
+
+
+def tuned(changes: list[str]) -> Any:
+    """The working tree's tuning with `changes` (NAME=VALUE, each value a Python literal)."""
+    values = {}
+    names = {f.name for f in dataclasses.fields(settle_tuning.TUNING)}
+    for change in changes:
+        name, _, value = change.partition('=')
+        if name not in names:
+            raise SystemExit(f'--tune {change}: no tuning value {name!r}; the names are '
+                             "`SettleTuning`'s (kneeseat_core/settle/tuning.py)")
+        try:
+            values[name] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            raise SystemExit(f'--tune {change}: give NAME=VALUE with a number or a tuple '
+                             'as VALUE') from None
+    try:
+        return dataclasses.replace(settle_tuning.TUNING, **values)
+    except (TypeError, ValueError) as err:
+        raise SystemExit(f'--tune: {err}') from None
 
 
 class Paired:
     """`chains.settle` replaced: every settle run with both climbs, timed."""
 
-    def __init__(self, base: Any) -> None:
-        self.climbs = {'base': base, 'new': new_climb.run_climb}
+    def __init__(self, base: Any, new: Any) -> None:
+        self.climbs = {'base': base, 'new': new}
         self.seconds = {'base': 0.0, 'new': 0.0}
         self.settles = 0
         self.differ = 0
         self.settle = getattr(chains, 'settle')      # what the chains call, replaced
+        self.run_climb = getattr(settle_package, 'run_climb')    # what the settle calls
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         order = ('base', 'new') if self.settles % 2 == 0 else ('new', 'base')
@@ -83,7 +108,7 @@ class Paired:
                     results[side] = err
                 self.seconds[side] += time.perf_counter() - started
         finally:
-            setattr(settle_package, 'run_climb', new_climb.run_climb)
+            setattr(settle_package, 'run_climb', self.run_climb)
         self.settles += 1
         new, base = results['new'], results['base']
         if isinstance(new, Exception) or isinstance(base, Exception):
@@ -99,17 +124,21 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--base', required=True,
                         help='git revision (or file) of the climb to compare with')
+    parser.add_argument('--tune', action='append', default=[], metavar='NAME=VALUE',
+                        help="the working tree's climb with this `SettleTuning` value "
+                             '(repeatable), e.g. --tune pool_window_res=0.5')
     add_slice_options(parser)
     args = parser.parse_args()
+    new = climb_with(new_climb, tuned(args.tune))
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix='climb_ab.') as tmp:
         where = Path(tmp)
         # the base's own tuning (its constants steer it); a file's is the working tree's
         tuning = settle_tuning.TUNING if Path(args.base).is_file() else \
             load_base(source_at(args.base, TUNING), where, 'tuning_base').TUNING
-        base = base_climb(load_base(source_at(args.base, CLIMB), where, 'climb_base'), tuning)
+        base = climb_with(load_base(source_at(args.base, CLIMB), where, 'climb_base'), tuning)
         for knee in slice_knees(args):
-            paired = Paired(base)
+            paired = Paired(base, new)
             setattr(chains, 'settle', paired)
             try:
                 build_slice(knee, args, where / f'{knee}.npz')

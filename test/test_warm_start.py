@@ -9,8 +9,9 @@ import math
 
 import numpy as np
 
-from kneeseat_core.geometry import pose_from, rotation_about
+from kneeseat_core.geometry import carried, pose_from, rotation_about
 from kneeseat_core.sweep import mean_change, ribs_beside, warm_start
+from kneeseat_core.sweep.chains import rest_change
 from kneeseat_core.sweep.phases import FARTHEST_BESIDE
 from kneeseat_core.typed import Floats, Pose
 
@@ -48,6 +49,27 @@ def test_a_start_from_the_ribs_beside_lands_on_a_field_of_rests_that_bends() -> 
                         change=change)
     assert np.allclose(backed[:3, 3], rest(f, v)[:3, 3] - 1e-3 * PUSH, rtol=0.0, atol=1e-12)
     assert np.allclose(backed[:3, :3] @ backed[:3, :3].T, np.eye(3), rtol=0.0, atol=1e-12)
+
+
+def test_the_mean_change_over_a_rib_s_steps_is_each_step_s_change_averaged_bit_for_bit(
+) -> None:
+    # the steps are taken at once (stacks of products); each step's change, made alone as
+    # `rest_change` of the two rests `carried` to the cell, must come out the same to the
+    # bit, or a table would move with how many ribs a cell learns from
+    rng = np.random.default_rng(7)
+
+    def turn() -> Floats:
+        axis = rng.normal(size=3)
+        return rotation_about(axis / np.linalg.norm(axis), rng.uniform(-0.5, 0.5))
+
+    for count in range(1, 6):
+        steps = [(pose_from(turn(), rng.normal(size=3) * 1e-2), turn(),
+                  pose_from(turn(), rng.normal(size=3) * 1e-2), turn()) for _ in range(count)]
+        cell = turn()
+        alone = np.mean([rest_change(carried(older, older_turn, cell),
+                                     carried(newer, newer_turn, cell))
+                         for older, older_turn, newer, newer_turn in steps], axis=0)
+        assert mean_change(steps, cell).tobytes() == alone.tobytes()
 
 
 def test_a_rib_learns_from_the_ribs_beside_it_in_a_few_rounds() -> None:
