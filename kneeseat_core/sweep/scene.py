@@ -94,9 +94,9 @@ def scene_bodies(spec: SceneSpec, quiet: bool = True) -> tuple[RigidBody, tuple[
     with _SCENES_LOCK:
         if spec not in _SCENES:
             # the meshes are loaded in turn here (their warnings in order) while a body
-            # loaded already gets its hierarchies on another thread: python-fcl and the
-            # engine build them without the GIL, so a start-up that would leave the other
-            # core idle uses it
+            # loaded already gets its hierarchies on another thread: the engine builds its
+            # own without the GIL (python-fcl holds it), so the start-up, which would leave
+            # the other core idle, uses it for part of the time
             with ThreadPoolExecutor(max_workers=_BUILDERS) as builders:
                 building, index = [], 0
                 for group in spec.groups():
