@@ -125,18 +125,22 @@ def _cross_matrices(x: float, y: float, z: float) -> tuple[Floats, Floats]:
 
 
 def pose_from(rotation: Floats, translation: Floats) -> Pose:
-    """(4, 4) pose from a (3, 3) rotation and a (3,) translation in metres."""
-    pose = np.eye(4)
-    pose[:3, :3] = rotation
-    pose[:3, 3] = translation
+    """(4, 4) pose from a (3, 3) rotation and a (3,) translation in metres; or a stack of
+    them, (..., 4, 4) from (..., 3, 3) and (..., 3)."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    pose = np.zeros(rotation.shape[:-2] + (4, 4))
+    pose[..., :3, :3] = rotation
+    pose[..., :3, 3] = translation
+    pose[..., 3, 3] = 1.0
     return pose
 
 
 def carried(pose: Pose, from_attitude: Floats, attitude: Floats) -> Pose:
     """`pose` (4, 4), taken at the attitude `from_attitude` (3, 3), turned by the change of
-    attitude to `attitude` (3, 3): the same pose relative to the joint."""
-    turn = attitude @ from_attitude.T
-    return pose_from(turn @ pose[:3, :3], turn @ pose[:3, 3])
+    attitude to `attitude` (3, 3): the same pose relative to the joint. Stacks of poses and
+    attitudes ((..., 4, 4), (..., 3, 3)) give the stack of each one's, bit for bit."""
+    turn = attitude @ np.swapaxes(from_attitude, -1, -2)
+    return pose_from(turn @ pose[..., :3, :3], (turn @ pose[..., :3, 3, None])[..., 0])
 
 
 def rotation_angle(a: Floats, b: Floats) -> float:

@@ -137,10 +137,12 @@ class ChainResult:
 
 def rest_change(older: Pose, newer: Pose) -> Pose:
     """The change from the pose `older` to `newer` (both (4, 4), at one attitude): the turn
-    that takes one's orientation to the other's (left factor) and the shift of the origin."""
-    out: Pose = np.eye(4)
-    out[:3, :3] = newer[:3, :3] @ older[:3, :3].T
-    out[:3, 3] = newer[:3, 3] - older[:3, 3]
+    that takes one's orientation to the other's (left factor) and the shift of the origin.
+    Stacks of poses ((..., 4, 4)) give the stack of each pair's, bit for bit."""
+    out: Pose = np.zeros(np.shape(newer))
+    out[..., :3, :3] = newer[..., :3, :3] @ np.swapaxes(older[..., :3, :3], -1, -2)
+    out[..., :3, 3] = newer[..., :3, 3] - older[..., :3, 3]
+    out[..., 3, 3] = 1.0
     return out
 
 
@@ -148,18 +150,10 @@ def mean_change(steps: Sequence[tuple[Pose, Floats, Pose, Floats]], attitude: Fl
     """The mean of the changes of rest over `steps` (each: the older rest and its attitude,
     the newer rest and its attitude), each step's two rests carried to `attitude` first
     (`rest_change`; the mean turn is made a rotation where it is applied, `warm_start`)."""
-    # the steps at once, each product as `carried` and `rest_change` make it (a stack of
-    # products is the products, bit for bit), each rest's turn taken to `attitude` first
+    # the steps as stacks, at once: the same products as step by step, bit for bit
     older, older_attitudes, newer, newer_attitudes = (np.array(a) for a in zip(*steps))
-    to_older = attitude @ older_attitudes.transpose(0, 2, 1)
-    to_newer = attitude @ newer_attitudes.transpose(0, 2, 1)
-    changes = np.zeros((len(steps), 4, 4))
-    changes[:, :3, :3] = (to_newer @ newer[:, :3, :3]) @ (to_older @ older[:, :3, :3]).transpose(
-        0, 2, 1)
-    changes[:, :3, 3] = (to_newer @ newer[:, :3, 3, None])[..., 0] \
-        - (to_older @ older[:, :3, 3, None])[..., 0]
-    changes[:, 3, 3] = 1.0
-    out: Pose = np.mean(changes, axis=0)
+    out: Pose = np.mean(rest_change(carried(older, older_attitudes, attitude),
+                                    carried(newer, newer_attitudes, attitude)), axis=0)
     return out
 
 
