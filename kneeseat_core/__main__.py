@@ -1,6 +1,4 @@
 """`python -m kneeseat_core` runs the kneeseat CLI."""
-import sys
+from .cli.main import run
 
-from .cli.main import main
-
-sys.exit(main())
+run()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 from contextlib import contextmanager
+import gc
 import logging
 import os
 import sys
@@ -25,7 +26,7 @@ from kneeseat_core.args import EXIT_BAD_INPUT, EXIT_ERROR, join_negative_values,
 from kneeseat_core.errors import KneeseatError
 from . import build_command, settle_command, table_commands, verify_command
 
-__all__ = ['main', 'build_parser']
+__all__ = ['main', 'run', 'build_parser']
 
 log = logging.getLogger('kneeseat')
 
@@ -98,3 +99,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f'kneeseat {args.name}: interrupted', file=sys.stderr)
         return 130
+
+
+def run() -> None:
+    """The `kneeseat` console script and `python -m kneeseat_core`: `main`, then exit with
+    its code. The objects left are frozen first (`gc.freeze`): the interpreter's shutdown
+    then leaves them out of its collections, which took 0.2 s after a build (trimesh,
+    scipy and the scene loaded) and take 0.06 s so; every exit handler still runs."""
+    code = main()
+    gc.freeze()
+    sys.exit(code)
