@@ -39,7 +39,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'kneeseat = kneeseat_core.cli.main:run',
+            'kneeseat = kneeseat_core.console:run',
             'table_server = kneeseat_ros.table_server:main',
             'replay = kneeseat_ros.bag.replay:main',
             'make_bag = kneeseat_ros.bag.make_bag:main',

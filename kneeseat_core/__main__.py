@@ -1,4 +1,4 @@
 """`python -m kneeseat_core` runs the kneeseat CLI."""
-from .cli.main import run
+from .console import run
 
 run()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 from contextlib import contextmanager
-import gc
 import logging
 import os
 import sys
@@ -26,7 +25,7 @@ from kneeseat_core.args import EXIT_BAD_INPUT, EXIT_ERROR, join_negative_values,
 from kneeseat_core.errors import KneeseatError
 from . import build_command, settle_command, table_commands, verify_command
 
-__all__ = ['main', 'run', 'build_parser']
+__all__ = ['main', 'build_parser']
 
 log = logging.getLogger('kneeseat')
 
@@ -59,7 +58,8 @@ def one_blas_thread() -> Iterator[None]:
     OPENBLAS_NUM_THREADS: this process's through threadpoolctl, and the workers it spawns
     through that variable, which their OpenBLAS reads as it loads, so that it starts no
     thread to spin idle on a core the workers share (2-3 % of a build's CPU, sampled). The
-    variable is taken away again when the command ends."""
+    variable is taken away again when the command ends. Run as a program, the variable is
+    set already, before numpy loaded (`kneeseat_core.console`)."""
     if 'OPENBLAS_NUM_THREADS' in os.environ:
         yield
         return
@@ -72,7 +72,8 @@ def one_blas_thread() -> Iterator[None]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `kneeseat` console script; returns the exit code."""
+    """The command line on `argv` (default: `sys.argv`); returns the exit code
+    (`kneeseat_core.console.run` runs it as the `kneeseat` program)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     try:
@@ -99,13 +100,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f'kneeseat {args.name}: interrupted', file=sys.stderr)
         return 130
-
-
-def run() -> None:
-    """The `kneeseat` console script and `python -m kneeseat_core`: `main`, then exit with
-    its code. The objects left are frozen first (`gc.freeze`): the interpreter's shutdown
-    then leaves them out of its collections, which took 0.2 s after a build (trimesh,
-    scipy and the scene loaded) and take 0.06 s so; every exit handler still runs."""
-    code = main()
-    gc.freeze()
-    sys.exit(code)
