@@ -4,9 +4,12 @@ scene while the first settles the centre cells (`prepare_worker`)."""
 from __future__ import annotations
 
 from concurrent.futures import Future, ProcessPoolExecutor
+import json
 import multiprocessing
 import os
 from pathlib import Path
+import subprocess
+import sys
 from typing import Any, Callable
 
 import numpy as np
@@ -106,6 +109,33 @@ def test_a_command_keeps_openblas_to_one_thread_while_it_runs(
     monkeypatch.setenv('OPENBLAS_NUM_THREADS', '2')
     with one_blas_thread():
         assert os.environ['OPENBLAS_NUM_THREADS'] == '2'
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason='OpenBLAS starts no thread on one core')
+def test_the_kneeseat_program_loads_openblas_with_one_thread(tmp_path: Path) -> None:
+    """Run as a program (`kneeseat_core.console.run`), the command line sets the variable
+    before numpy loads OpenBLAS, so that OpenBLAS never makes a second thread (one the
+    command's scope set after loading left behind, for this process and a forked worker
+    to start again); its exit code still comes through."""
+    probe = tmp_path / 'probe.py'
+    probe.write_text(
+        'import atexit, json, os, sys\n'
+        'from threadpoolctl import threadpool_info\n'
+        'def report():\n'
+        '    counts = sorted({lib["num_threads"] for lib in threadpool_info()\n'
+        '                     if lib["user_api"] == "blas"})\n'
+        '    print(json.dumps([counts, os.environ.get("OPENBLAS_NUM_THREADS")]))\n'
+        'atexit.register(report)\n'
+        'sys.argv = ["kneeseat", "info", sys.argv[1]]\n'
+        'from kneeseat_core.console import run\n'
+        'run()\n')
+    env = {k: v for k, v in os.environ.items() if k != 'OPENBLAS_NUM_THREADS'}
+    done = subprocess.run([sys.executable, str(probe), str(tmp_path / 'missing.npz')],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr          # the table is missing: bad input
+    assert 'missing.npz' in done.stderr and 'Traceback' not in done.stderr
+    counts, variable = json.loads(done.stdout.strip().splitlines()[-1])
+    assert counts == [1] and variable == '1'
 
 
 def blas_threads(info: list[dict[str, Any]]) -> set[int]:
