@@ -91,7 +91,10 @@ def part(dotted: str) -> str | None:
     bits = dotted.split('.')
     if bits[0] != 'kneeseat_core':
         return None
-    if bits[1:2] == ['__main__']:          # `python -m kneeseat_core` runs the command line
+    # `python -m kneeseat_core` and the `kneeseat` program run the command line; the
+    # program's module sits outside `cli`, whose package loads numpy, so that it can set
+    # OpenBLAS's thread count before numpy loads
+    if bits[1:2] in (['__main__'], ['console']):
         return 'cli'
     if len(bits) == 1 or not (CORE / bits[1]).is_dir():
         return ''
