@@ -26,6 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Any
 
 import numpy as np
 
@@ -43,7 +44,7 @@ CONFIGS = {'tka': ('tka_dm.yaml', 'data'), 'natural': ('natural_knee.yaml', 'nat
 TARGETS_S = {'tka': 10.0, 'natural': 10.0, 'default': 5.0}
 
 
-def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> dict:
+def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> dict[str, Any]:
     """Run one `kneeseat build` subprocess; return its measurements."""
     out = work / f'{knee}_{workers}.npz'
     cmd = [sys.executable, '-m', 'kneeseat_core', 'build', '--out', str(out),
