@@ -9,7 +9,9 @@ settles make to `SweepPair.measure`; then asks each call of both engines, in tur
 orders alternating from call to call. A machine whose speed drifts within seconds (this
 one is shared) then slows both alike, and their ratio holds where whole builds timed one
 after the other differ by a tenth from run to run. Prints whether the two answered every
-call the same, bit for bit, and per run the seconds of each and their ratio (new / base).
+call the same, bit for bit (the pose found, its travel and features; the counts of searches
+and pairs a call made may differ), the searches each made, and per run the seconds of each
+and their ratio (new / base).
 The first, untimed pass builds each engine's views and fills their bounds: the runs time
 the searches themselves, not a view's first filling. With `--cold` each settle's calls
 start from new views instead, as a build's do (a view per cell and body: the push turns
@@ -86,6 +88,14 @@ class Engine:
         self.module = module
         self.bodies: dict[int, Any] = {}
         self.views: dict[tuple[int, int, int, int, int], Any] = {}
+        # per settle (its `SweepPair`), for an engine that keeps the pairs that stopped its
+        # searches short (`SweepPair._stoppers`)
+        self.stoppers: dict[int, np.ndarray] = {}
+
+    def start_settles(self) -> None:
+        """Every settle's calls from its first again: no pair has stopped a search yet."""
+        for kept in self.stoppers.values():
+            kept.fill(-1)
 
     def view(self, body: Any, direction: Any, side: int) -> Any:
         x, y, z = (round(c / sweep._SAME_DIRECTION) for c in np.asarray(direction).tolist())
@@ -114,31 +124,53 @@ class Engine:
         turn = poses[0][:3, :3].T @ pair.push
         floats = [np.ascontiguousarray(a, dtype=np.float64)
                   for a in (needed, expected, windows, gaps, slopes)]
+        stoppers = (self.stoppers.setdefault(id(pair), np.full_like(pair._stoppers, -1)),) \
+            if 'stoppers' in (self.module.measure.__doc__ or '') else ()
         return (self.view(pair.fixed, pair.push, -1), self.view(pair.moving, turn, 1), poses,
                 *floats, np.ascontiguousarray(faces, dtype=np.int64),
                 np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
                 float(deepest), pair._bounds, int(start),
-                None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64), *cap)
+                None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64), *cap,
+                *stoppers)
+
+
+def answer(measured: tuple[Any, ...]) -> tuple[Any, ...]:
+    """What a `measure` call answers (index, kind, travel, features), without its counts of
+    searches and pairs: a change that spares searches answers the same."""
+    return measured[:4]
+
+
+def searches(measured: tuple[Any, ...]) -> int:
+    """The searches a `measure` call made."""
+    return int(measured[4])
 
 
 def compare(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine],
-            runs: int) -> tuple[int, list[list[float]]]:
-    """How many calls the two engines answer differently, and per run the seconds of each."""
+            runs: int) -> tuple[int, list[int], list[list[float]]]:
+    """How many calls the two engines answer differently, the searches each made, and per
+    run the seconds of each."""
     asked = [[engine.call(pair, args) for engine in engines] for pair, args in calls]
-    differ = sum(engines[0].module.measure(*a) != engines[1].module.measure(*b)
-                 for a, b in asked)                 # also fills every view's bounds
+    # the first pass also fills every view's bounds
+    for engine in engines:
+        engine.start_settles()
+    measured = [[engine.module.measure(*one) for engine, one in zip(engines, both)]
+                for both in asked]
+    differ = sum(answer(a) != answer(b) for a, b in measured)
+    made = [sum(searches(both[k]) for both in measured) for k in (0, 1)]
     seconds = [[0.0, 0.0] for _ in range(runs)]
     for run in range(runs):
+        for engine in engines:
+            engine.start_settles()
         for n, both in enumerate(asked):
             for k in ((0, 1) if (n + run) % 2 == 0 else (1, 0)):
                 started = time.perf_counter()
                 engines[k].module.measure(*both[k])
                 seconds[run][k] += time.perf_counter() - started
-    return differ, seconds
+    return differ, made, seconds
 
 
 def compare_cold(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine],
-                 runs: int) -> tuple[int, list[list[float]]]:
+                 runs: int) -> tuple[int, list[int], list[list[float]]]:
     """As `compare`, each settle's calls from new views (a settle is the calls of one
     `SweepPair`): the views' making and filling timed with the searches, each settle's
     calls made by one engine and then the other, which goes first alternating."""
@@ -148,8 +180,11 @@ def compare_cold(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine]
             settles.append([])
         settles[-1].append((pair, args))
     differ = 0
+    made = [0, 0]
     seconds = [[0.0, 0.0] for _ in range(runs)]
     for run in range(runs):
+        for engine in engines:
+            engine.start_settles()
         for n, settle in enumerate(settles):
             answers: list[list[Any]] = [[], []]
             for k in ((0, 1) if (n + run) % 2 == 0 else (1, 0)):
@@ -159,8 +194,11 @@ def compare_cold(calls: list[tuple[Any, tuple[Any, ...]]], engines: list[Engine]
                 for pair, args in settle:
                     answers[k].append(engine.module.measure(*engine.call(pair, args)))
                 seconds[run][k] += time.perf_counter() - started
-            differ += run == 0 and answers[0] != answers[1]
-    return differ, seconds
+            if run == 0:
+                differ += [answer(a) for a in answers[0]] != [answer(b) for b in answers[1]]
+                for k in (0, 1):
+                    made[k] += sum(searches(a) for a in answers[k])
+    return differ, made, seconds
 
 
 def main() -> int:
@@ -179,11 +217,12 @@ def main() -> int:
                    compile_engine((REPO / ENGINE).read_text(), 'engine_new', where)]
         for knee in slice_knees(args):
             calls = recorded_calls(knee, args, where / f'{knee}.npz')
-            differ, seconds = (compare_cold if args.cold else compare)(
+            differ, made, seconds = (compare_cold if args.cold else compare)(
                 calls, [Engine(m) for m in modules], args.runs)
             same = 'the same answers bit for bit' if differ == 0 else \
                 f'{differ} {"settles" if args.cold else "calls"} answered differently'
-            print(f'{knee}: {len(calls)} calls, {same}; seconds base / new (ratio): ' +
+            print(f'{knee}: {len(calls)} calls, {same}; searches base / new: {made[0]} / '
+                  f'{made[1]}; seconds base / new (ratio): ' +
                   ', '.join(f'{b:.3f} / {n:.3f} ({n / b:.3f})' for b, n in seconds))
     return 0
 

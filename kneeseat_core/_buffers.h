@@ -1,6 +1,7 @@
 // A Python object's buffer checked for the compiled modules (meshes/_sweep.cpp,
 // settle/_simplex.cpp, settle/_moves.cpp): C-contiguous, of one struct format ("d", "q" or "b")
-// and item size; otherwise the buffer is not held and `error` is set, naming `what`.
+// and item size, and `writable` where asked; otherwise the buffer is not held and `error` is
+// set, naming `what`.
 #ifndef KNEESEAT_BUFFERS_H
 #define KNEESEAT_BUFFERS_H
 
@@ -12,8 +13,9 @@
 namespace kneeseat {
 
 inline bool get_buffer(PyObject *obj, Py_buffer *view, const char *format, Py_ssize_t itemsize,
-                       const char *what, PyObject *error = PyExc_TypeError) {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return false;
+                       const char *what, PyObject *error = PyExc_TypeError, bool writable = false) {
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0)
+        return false;
     const char *f = view->format ? view->format : "B";
     if (*f == '<' || *f == '=' || *f == '@') ++f;
     // int64 is "q", or "l" where a long is 8 bytes

@@ -295,6 +295,42 @@ def test_measuring_finds_the_first_probe_unrefuted_and_not_short(name: str) -> N
     assert found > 0
 
 
+def test_the_pairs_that_stopped_searches_short_spare_later_searches_and_change_no_answer(
+        ) -> None:
+    """A settle's pair keeps the pairs of triangles that stopped its searches short and asks
+    them of its later moves before their witnesses: the moves about one place run into the
+    same part of the fixed body, where a pool taken near the place may name none of it.
+    Each probe about a contact, measured in turn with a pool that names only its farthest
+    feature: the same answers as the same pair forgetting them before every call, and fewer
+    searches over the scenes."""
+    spared = 0
+    for name in sc.SCENES:
+        var = sc.variant(name, 'rotated')
+        push = var.push / np.linalg.norm(var.push)
+        _, _, touch, probes, lifts = probing(var.fixed, var.moving, push, var.start, seed=7)
+        far = np.argsort(touch.gaps)[-1:]
+        pool = (touch.gaps[far], np.zeros((1, 3)), touch.faces[far])
+        answers, searches = [], []
+        for remember in (True, False):
+            sweep = SweepPair(var.fixed, var.moving, push)
+            answered = []
+            for probe, lift in zip(probes, lifts):
+                if not remember:
+                    sweep._stoppers.fill(-1)
+                _, kind, got = sweep.measure(probe[None], np.array([lift]), np.array([lift]),
+                                             np.full(1, 3e-4), pool, np.zeros((1, 3)), 1,
+                                             1e-7, 1e-3)
+                answered.append((kind, None if got is None else
+                                 (got.travel, got.gaps.tobytes(), got.faces.tobytes())))
+            assert any(kind == SHORT for kind, _ in answered)
+            answers.append(answered)
+            searches.append(sweep.queries)
+        assert answers[0] == answers[1], name
+        assert searches[0] <= searches[1], name
+        spared += searches[1] - searches[0]
+    assert spared > 0
+
+
 @pytest.mark.parametrize('name', ['sphere_bowl', 'cylinder_groove', 'key_pocket'])
 def test_a_capped_search_keeps_the_nearest_features_beyond_what_it_keeps_whole(
         name: str) -> None:
@@ -342,6 +378,18 @@ def test_measure_refuses_bad_input_without_crashing() -> None:
         with pytest.raises(ValueError):
             sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)),
                           0, 1e-7, 0.0, cap=cap, keep=keep)
+    # the pairs kept that stopped searches short: each must name faces the bodies have, and
+    # the engine writes them
+    sweep._stoppers[0] = (0, 10 ** 9)
+    with pytest.raises(ValueError):
+        sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)), 0,
+                      1e-7, 0.0)
+    sweep._stoppers = np.full((4, 2), -1, dtype=np.int64)
+    sweep._stoppers.flags.writeable = False
+    with pytest.raises((ValueError, BufferError)):
+        sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)), 0,
+                      1e-7, 0.0)
+    sweep._stoppers = np.full((4, 2), -1, dtype=np.int64)
     index, kind, touch = sweep.measure(one, np.array([-math.inf]), np.zeros(1), np.ones(1),
                                        none, np.zeros((1, 3)), 0, 1e-7, 0.0)
     assert (index, kind) == (0, PLACE) and touch is not None and len(touch.gaps) > 0

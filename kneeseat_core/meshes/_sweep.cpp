@@ -428,6 +428,9 @@ struct Sweep {
     // results
     double best;
     bool buried;
+    // the pair (moving face, fixed face: the caller's ids) that set `best` last, or buried
+    // the pose: the one that stops a search short (-1: none yet)
+    int64_t stopper[2] = {-1, -1};
     std::vector<Feature> features;
     std::vector<Visit> visits;         // the traversal's stack, kept between queries
     long pairs = 0;
@@ -655,9 +658,18 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
     if (planes_least(A, B, ta, tb, lo, hi) > cutoff() + kPlaneSlack) return;
     const PairGap g(A, B);
     if (g.kind < 0 || g.most < -behind) return;      // shadows apart, or wholly behind
-    if (g.least <= -behind) { buried = true; return; }
+    if (g.least <= -behind) {
+        buried = true;
+        stopper[0] = mb.face_id[ta];
+        stopper[1] = fb.face_id[tb];
+        return;
+    }
     if (g.least > cutoff()) return;
-    if (g.least < best) best = g.least;
+    if (g.least < best) {
+        best = g.least;
+        stopper[0] = mb.face_id[ta];
+        stopper[1] = fb.face_id[tb];
+    }
     if (!want_features) return;
     const int kind = g.kind, i_at = g.i_at, j_at = g.j_at;
     Feature f;
@@ -715,6 +727,7 @@ void Sweep::triangle_pair(int32_t ta, int32_t tb) {
 void Sweep::run(const int64_t *seeds, Py_ssize_t count) {
     best = kInf;
     buried = false;
+    stopper[0] = stopper[1] = -1;
     features.clear();
     nearest.clear();
     const Body &fb = *fixed->body, &mb = *moving->body;
@@ -1232,25 +1245,28 @@ Measured arrive(Sweep &s, const double *pose, double expected, double short_of, 
 
 // measure(fixed_view, moving_view, poses (m, 4, 4), needed (m,), expected (m,), windows (m,),
 // gaps (k,), slopes (k, 3), faces (k, 2), offsets (m, 3), count, standoff, deepest, bounds (7,),
-// start, seeds (c, 2) | None, cap, keep) -> (index, kind, travel, features, queries, pairs):
-// from pose `start` on, the first that none of its witnesses refutes (first_unrefuted; with
-// count 0 none is asked) moved along d to contact (arrive: expected[i], short of needed[i],
-// the features within windows[i], of those beyond `keep` only the `cap` nearest: 0 keeps
-// them all, `kept_features`); one found short is passed over. kind kPlace: the pose
-// `index` reached its travel, with the features (bytes of Feature); kLost: no contact
-// along d from it; index m: every pose refuted or short. A search starts from the pose's
-// witnesses, or from `seeds` where none are asked. A needed travel of +inf (or NaN) is
-// passed over.
+// start, seeds (c, 2) | None, cap, keep, stoppers (s, 2)) -> (index, kind, travel, features,
+// queries, pairs): from pose `start` on, the first that none of its witnesses refutes (the
+// `stoppers` first, then first_unrefuted's; with count 0 none is asked) moved along d to
+// contact (arrive: expected[i], short of needed[i], the features within windows[i], of those
+// beyond `keep` only the `cap` nearest: 0 keeps them all, `kept_features`); one found short
+// is passed over, the pair that stopped its search put first in `stoppers` (written in
+// place: pairs of face indices, newest first, -1 past the last; as many as it holds). kind
+// kPlace: the pose `index` reached its travel, with the features (bytes of Feature); kLost:
+// no contact along d from it; index m: every pose refuted or short. A search starts from the
+// pose's witnesses, or from `seeds` where none are asked. A needed travel of +inf (or NaN)
+// is passed over. Any pair that closes short of a pose's needed travel refutes it exactly,
+// so the stoppers change how fast the answer comes, never the answer.
 PyObject *measure(PyObject *, PyObject *args) {
-    PyObject *fo, *mo, *po, *no, *eo, *wo, *go, *so, *qo, *oo, *bo, *co;
+    PyObject *fo, *mo, *po, *no, *eo, *wo, *go, *so, *qo, *oo, *bo, *co, *xo;
     Py_ssize_t count, start, cap;
     double standoff, deepest, keep;
     Sweep s;
-    if (!PyArg_ParseTuple(args, "O!O!OOOOOOOOnddOnOnd", &ViewType, &fo, &ViewType, &mo, &po, &no, &eo, &wo, &go,
-                          &so, &qo, &oo, &count, &standoff, &deepest, &bo, &start, &co, &cap, &keep))
+    if (!PyArg_ParseTuple(args, "O!O!OOOOOOOOnddOnOndO", &ViewType, &fo, &ViewType, &mo, &po, &no, &eo, &wo, &go,
+                          &so, &qo, &oo, &count, &standoff, &deepest, &bo, &start, &co, &cap, &keep, &xo))
         return nullptr;
     if (!take_views(fo, mo, s)) return nullptr;
-    Py_buffer bufs[10];
+    Py_buffer bufs[11];
     int held = 0;
     bool ok = get_buffer(po, &bufs[0], "d", 8, "poses") && ++held;
     Py_ssize_t m = ok ? bufs[0].len / 128 : 0;
@@ -1272,6 +1288,14 @@ PyObject *measure(PyObject *, PyObject *args) {
         seeds = ok ? static_cast<const int64_t *>(bufs[9].buf) : nullptr;
         ok = ok && bufs[9].len == 16 * c && faces_of(s, seeds, c);
     }
+    // written: the pairs that stopped earlier searches short (below)
+    Py_buffer &kept_stoppers = bufs[held];
+    ok = ok && get_buffer(xo, &kept_stoppers, "q", 8, "stoppers", PyExc_TypeError, true) && ++held;
+    Py_ssize_t most = ok ? kept_stoppers.len / 16 : 0;
+    int64_t *stoppers = ok ? static_cast<int64_t *>(kept_stoppers.buf) : nullptr;
+    Py_ssize_t stopping = 0;
+    while (stopping < most && stoppers[2 * stopping] >= 0) ++stopping;
+    ok = ok && kept_stoppers.len == 16 * most && faces_of(s, stoppers, stopping);
     const int64_t *faces = ok ? static_cast<const int64_t *>(bufs[6].buf) : nullptr;
     ok = ok && faces_of(s, faces, k);
     const double *windows = ok ? static_cast<const double *>(bufs[3].buf) : nullptr;
@@ -1285,8 +1309,9 @@ PyObject *measure(PyObject *, PyObject *args) {
         if (!PyErr_Occurred())
             PyErr_SetString(PyExc_ValueError, "measure: poses (m, 4, 4), needed, finite expected and windows "
                                               "(m,), gaps (k,), slopes (k, 3), faces (k, 2) and seeds (c, 2) of "
-                                              "face indices, offsets (m, 3), bounds (7,); standoff positive; "
-                                              "windows, count, deepest, start, cap and keep not negative");
+                                              "face indices, offsets (m, 3), bounds (7,), stoppers (s, 2) of face "
+                                              "indices up to the first -1; standoff positive; windows, count, "
+                                              "deepest, start, cap and keep not negative");
         for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
         return nullptr;
     }
@@ -1300,6 +1325,10 @@ PyObject *measure(PyObject *, PyObject *args) {
     long queries = 0;
     Measured kind = kShort;
     s.keep = keep;
+    // the pairs that stopped earlier searches short (the caller's, newest first, -1 past
+    // the last): a pose is asked them before its witnesses, the moves about one place
+    // running into the same part of the fixed body where the pool, taken near it, names
+    // none of it; each search found short here adds its own, the oldest going
     Py_ssize_t i = start;
     for (; i < m; ++i) {
         if (std::isnan(needed[i]) || needed[i] == kInf) continue;
@@ -1307,8 +1336,13 @@ PyObject *measure(PyObject *, PyObject *args) {
         Py_ssize_t from_count = c;
         if (count > 0) {
             s.place(p + 16 * i);
-            if (witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], standoff, deepest,
-                              ranked, picked, vertices, stack))
+            bool stopped = false;
+            for (Py_ssize_t j = 0; j < stopping && !stopped; ++j) {
+                vertices.clear();
+                stopped = pair_short(s, stoppers + 2 * j, needed[i], standoff, vertices);
+            }
+            if (stopped || witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], standoff,
+                                         deepest, ranked, picked, vertices, stack))
                 continue;
             from = picked.data();
             from_count = static_cast<Py_ssize_t>(picked.size() / 2);
@@ -1317,6 +1351,17 @@ PyObject *measure(PyObject *, PyObject *args) {
         s.cap = windows[i] > keep ? static_cast<size_t>(cap) : 0;
         kind = arrive(s, p + 16 * i, expected[i], needed[i], windows[i], standoff, bounds, from, from_count, queries);
         if (kind != kShort) break;
+        if (count > 0 && most > 0 && s.stopper[0] >= 0) {      // the newest first, each once
+            Py_ssize_t j = 0;
+            while (j < stopping && !(stoppers[2 * j] == s.stopper[0] && stoppers[2 * j + 1] == s.stopper[1])) ++j;
+            if (j == stopping && stopping < most) ++stopping;
+            for (j = std::min(j, stopping - 1); j > 0; --j) {
+                stoppers[2 * j] = stoppers[2 * j - 2];
+                stoppers[2 * j + 1] = stoppers[2 * j - 1];
+            }
+            stoppers[0] = s.stopper[0];
+            stoppers[1] = s.stopper[1];
+        }
     }
     for (int j = 0; j < held; ++j) PyBuffer_Release(&bufs[j]);
     std::vector<Feature> kept;
@@ -1334,7 +1379,8 @@ PyMethodDef module_methods[] = {
      "deepest, start) -> (index, witnesses)"},
     {"measure", measure, METH_VARARGS,
      "measure(fixed_view, moving_view, poses, needed, expected, windows, gaps, slopes, faces, offsets, count, "
-     "standoff, deepest, bounds, start, seeds, cap, keep) -> (index, kind, travel, features, queries, pairs)"},
+     "standoff, deepest, bounds, start, seeds, cap, keep, stoppers) -> (index, kind, travel, features, queries, "
+     "pairs)"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

@@ -46,6 +46,9 @@ __all__ = ['SweepBody', 'SweepPair', 'Touch', 'FEATURE', 'sweep_body', 'facing',
 # climb can turn on those).
 _SAME_DIRECTION = 1e-12
 _VIEWS_KEPT = 8
+# How many of the pairs of triangles that stopped a settle's searches short its later moves
+# are asked first (`SweepPair.measure`).
+STOPPERS = 8
 
 # What `SweepPair.measure` found: a pose that reached its travel, every pose short (or
 # refuted), or a pose with no contact along the push.
@@ -222,6 +225,9 @@ class SweepPair:
     _moving: SweepBody = field(init=False, repr=False)
     _fixed_view: _sweep.View = field(init=False, repr=False)
     _bounds: Floats = field(init=False, repr=False)
+    # (STOPPERS, 2) the pairs (moving face, fixed face) that stopped `measure`'s searches
+    # short, newest first, -1 past the last: the engine asks them first and keeps them
+    _stoppers: Ints = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self._fixed = sweep_body(self.fixed)
@@ -232,6 +238,7 @@ class SweepPair:
         # body's, the sum of their radii
         self._bounds = np.concatenate([self.moving.bound_centre, self.fixed.bound_centre,
                                        [self.fixed.bound_radius + self.moving.bound_radius]])
+        self._stoppers = np.full((STOPPERS, 2), -1, dtype=np.int64)
 
     def _moving_view(self, pose: Pose) -> _sweep.View:
         return self._moving.view(pose[:3, :3].T @ self.push, 1)
@@ -276,12 +283,15 @@ class SweepPair:
                 keep: float = 0.0) -> tuple[int, int, Touch | None]:
         """From `start` on, the first of `poses` (m, 4, 4) that none of its witnesses
         refutes (`first_unrefuted`, with `count` witnesses and `standoff` the depth below a
-        pose a pair is not counted at; none asked with `count` 0) and whose search does not
-        find it short of `needed` (m,): its index, `PLACE` and the travel from it with the
-        features within `windows` (m,) beyond (the pose lowered first by twice the travel
-        `expected` (m,) where that is negative, plus the standoff, and four times further
-        while the lowered pose is buried); or its index and `LOST` where no contact lies
-        along Δ from it; or (m, SHORT, None) where every pose is refuted or short. A needed
+        pose a pair is not counted at; none asked with `count` 0; before them, the pairs that
+        stopped this pair's earlier searches short, the latest `STOPPERS`: the moves about a
+        place run into the same part of the fixed body, of which the pool, taken near it,
+        may name nothing) and whose search does not find it short of `needed` (m,): its
+        index, `PLACE` and the travel from it with the features within `windows` (m,)
+        beyond (the pose lowered first by twice the travel `expected` (m,) where that is
+        negative, plus the standoff, and four times further while the lowered pose is
+        buried); or its index and `LOST` where no contact lies along Δ from it; or (m,
+        SHORT, None) where every pose is refuted or short. A needed
         travel of +inf is passed over; -inf stops no search. A search starts from the pose's
         witnesses, or from `seeds` where none are asked. `cap` (0: none): of the features
         more than `keep` beyond the travel only the `cap` that close first are kept (ties
@@ -299,7 +309,7 @@ class SweepPair:
             np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
             float(deepest), self._bounds, int(start),
             None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64),
-            int(cap), float(keep))
+            int(cap), float(keep), self._stoppers)
         self.queries += queries
         self.pairs += pairs
         if kind != PLACE:
