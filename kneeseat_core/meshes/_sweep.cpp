@@ -1254,9 +1254,10 @@ Measured arrive(Sweep &s, const double *pose, double expected, double short_of, 
 // place: pairs of face indices, newest first, -1 past the last; as many as it holds). kind
 // kPlace: the pose `index` reached its travel, with the features (bytes of Feature); kLost:
 // no contact along d from it; index m: every pose refuted or short. A search starts from the
-// pose's witnesses, or from `seeds` where none are asked. A needed travel of +inf (or NaN)
-// is passed over. Any pair that closes short of a pose's needed travel refutes it exactly,
-// so the stoppers change how fast the answer comes, never the answer.
+// pose's witnesses and the stoppers, or from `seeds` where none are asked. A needed travel
+// of +inf (or NaN) is passed over. Any pair that closes short of a pose's needed travel
+// refutes it exactly, and seeds only bound a search, so the stoppers change how fast the
+// answer comes, never the answer.
 PyObject *measure(PyObject *, PyObject *args) {
     PyObject *fo, *mo, *po, *no, *eo, *wo, *go, *so, *qo, *oo, *bo, *co, *xo;
     Py_ssize_t count, start, cap;
@@ -1344,6 +1345,8 @@ PyObject *measure(PyObject *, PyObject *args) {
             if (stopped || witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], standoff,
                                          deepest, ranked, picked, vertices, stack))
                 continue;
+            // the search starts from the stoppers too: a tighter bound from its first visit
+            picked.insert(picked.end(), stoppers, stoppers + 2 * stopping);
             from = picked.data();
             from_count = static_cast<Py_ssize_t>(picked.size() / 2);
         }
