@@ -114,29 +114,39 @@ class Engine:
 
     def call(self, pair: Any, args: tuple[Any, ...]) -> tuple[Any, ...]:
         """The engine's arguments for one recorded call (SweepPair.measure's conversions)."""
-        poses, needed, expected, windows, (gaps, slopes, faces), offsets, count, standoff, \
-            deepest, start, seeds, *capped = args
+        poses, needed, expected, (near, far), (gaps, slopes, faces), moves, shift, reach, \
+            count, standoff, deepest, start, seeds, cap, keep = args
+        doc = self.module.measure.__doc__ or ''
+        f64 = np.float64
+        poses = np.ascontiguousarray(poses, dtype=f64)
+        turn = poses[0][:3, :3].T @ pair.push
+        head = (self.view(pair.fixed, pair.push, -1), self.view(pair.moving, turn, 1), poses,
+                np.ascontiguousarray(needed, dtype=f64), np.ascontiguousarray(expected, dtype=f64))
+        pool = (np.ascontiguousarray(gaps, dtype=f64), np.ascontiguousarray(slopes, dtype=f64),
+                np.ascontiguousarray(faces, dtype=np.int64))
+        if 'reach' in doc:          # the engine takes the moves and picks each one's window
+            middle: tuple[Any, ...] = (float(near), float(far), float(reach), *pool,
+                                       np.ascontiguousarray(moves, dtype=f64),
+                                       np.ascontiguousarray(shift, dtype=f64))
+        else:                       # one from before: each move's offset and window given
+            offsets = np.asarray(moves, dtype=f64) + np.asarray(shift, dtype=f64)
+            windows = np.where(np.abs(offsets).max(axis=-1) > reach, far, near)
+            middle = (np.ascontiguousarray(windows, dtype=f64), *pool,
+                      np.ascontiguousarray(offsets, dtype=f64))
         # the pool's cap and what it keeps whole, for an engine that takes them (one from
         # before them keeps every feature within the window)
-        cap = (int(capped[0]), float(capped[1])) \
-            if capped and 'cap' in (self.module.measure.__doc__ or '') else ()
-        poses = np.ascontiguousarray(poses, dtype=np.float64)
-        turn = poses[0][:3, :3].T @ pair.push
-        floats = [np.ascontiguousarray(a, dtype=np.float64)
-                  for a in (needed, expected, windows, gaps, slopes)]
+        capped = (int(cap), float(keep)) if 'cap' in doc else ()
         stoppers = (self.stoppers.setdefault(id(pair), np.full_like(pair._stoppers, -1)),) \
-            if 'stoppers' in (self.module.measure.__doc__ or '') else ()
-        return (self.view(pair.fixed, pair.push, -1), self.view(pair.moving, turn, 1), poses,
-                *floats, np.ascontiguousarray(faces, dtype=np.int64),
-                np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
-                float(deepest), pair._bounds, int(start),
-                None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64), *cap,
-                *stoppers)
+            if 'stoppers' in doc else ()
+        return (*head, *middle, int(count), float(standoff), float(deepest), pair._bounds,
+                int(start), None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64),
+                *capped, *stoppers)
 
 
 def answer(measured: tuple[Any, ...]) -> tuple[Any, ...]:
     """What a `measure` call answers (index, kind, travel, features), without its counts of
-    searches and pairs: a change that spares searches answers the same."""
+    searches and pairs (a change that spares searches answers the same) or whether the pose
+    found was wide (an engine from before does not say)."""
     return measured[:4]
 
 

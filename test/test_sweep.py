@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -268,12 +269,11 @@ def test_measuring_finds_the_first_probe_unrefuted_and_not_short(name: str) -> N
     _, sweep, touch, probes, lifts = probing(var.fixed, var.moving, push, var.start, seed=7)
     pool = (touch.gaps, np.zeros((len(touch.gaps), 3)), touch.faces)
     offsets = np.zeros((len(probes), 3))
-    windows = np.full(len(probes), 3e-4)
     count, standoff, found = len(touch.gaps), 1e-7, 0
     i = 0
     while i <= len(probes):
-        j, kind, got = sweep.measure(probes, lifts, lifts, windows, pool, offsets, count,
-                                     standoff, 1e-3, i)
+        j, kind, got, _ = sweep.measure(probes, lifts, lifts, (3e-4, 3e-4), pool, offsets,
+                                        np.zeros(3), math.inf, count, standoff, 1e-3, i)
         k, ref = i, None
         while k < len(probes):
             k, _ = sweep.first_unrefuted(probes, lifts, pool, offsets, count, standoff, 1e-3, k)
@@ -317,9 +317,10 @@ def test_the_pairs_that_stopped_searches_short_spare_later_searches_and_change_n
             for probe, lift in zip(probes, lifts):
                 if not remember:
                     sweep._stoppers.fill(-1)
-                _, kind, got = sweep.measure(probe[None], np.array([lift]), np.array([lift]),
-                                             np.full(1, 3e-4), pool, np.zeros((1, 3)), 1,
-                                             1e-7, 1e-3)
+                _, kind, got, _ = sweep.measure(probe[None], np.array([lift]),
+                                                np.array([lift]), (3e-4, 3e-4), pool,
+                                                np.zeros((1, 3)), np.zeros(3), math.inf, 1,
+                                                1e-7, 1e-3)
                 answered.append((kind, None if got is None else
                                  (got.travel, got.gaps.tobytes(), got.faces.tobytes())))
             assert any(kind == SHORT for kind, _ in answered)
@@ -343,9 +344,10 @@ def test_a_capped_search_keeps_the_nearest_features_beyond_what_it_keeps_whole(
     none = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
 
     def measured(cap: int, keep: float) -> Touch:
-        _, kind, touch = sweep.measure(var.start[None], np.array([-math.inf]), np.zeros(1),
-                                       np.array([1e-3]), none, np.zeros((1, 3)), 0, 1e-7,
-                                       0.0, cap=cap, keep=keep)
+        _, kind, touch, _ = sweep.measure(var.start[None], np.array([-math.inf]),
+                                          np.zeros(1), (1e-3, 1e-3), none, np.zeros((1, 3)),
+                                          np.zeros(3), math.inf, 0, 1e-7, 0.0, cap=cap,
+                                          keep=keep)
         assert kind == PLACE and touch is not None
         return touch
 
@@ -367,32 +369,72 @@ def test_measure_refuses_bad_input_without_crashing() -> None:
     sweep = SweepPair(var.fixed, var.moving, var.push / np.linalg.norm(var.push))
     none = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
     one = var.start[None]
+
+    def measure(expected: float = 0.0, windows: tuple[float, float] = (1.0, 1.0),
+                reach: float = math.inf, standoff: float = 1e-7, **kwargs: Any) -> Any:
+        return sweep.measure(one, np.zeros(1), np.array([expected]), windows, none,
+                             np.zeros((1, 3)), np.zeros(3), reach, 0, standoff, 0.0, **kwargs)
+
     for standoff, expected in ((0.0, 0.0), (1e-7, math.inf)):      # a standoff, a depth
         with pytest.raises(ValueError):
-            sweep.measure(one, np.zeros(1), np.array([expected]), np.ones(1), none,
-                          np.zeros((1, 3)), 0, standoff, 0.0)
+            measure(expected, standoff=standoff)
+    for windows, reach in (((-1.0, 1.0), math.inf), ((1.0, math.nan), math.inf),
+                           ((1.0, 1.0), math.nan)):                 # the windows, the reach
+        with pytest.raises(ValueError):
+            measure(windows=windows, reach=reach)
     with pytest.raises(ValueError):
-        sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)), 0,
-                      1e-7, 0.0, seeds=np.array([[0, 10 ** 9]]))
+        measure(seeds=np.array([[0, 10 ** 9]]))
+    with pytest.raises(ValueError):                                 # a move and its shift
+        sweep.measure(one, np.zeros(1), np.zeros(1), (1.0, 1.0), none, np.zeros((2, 3)),
+                      np.zeros(3), math.inf, 0, 1e-7, 0.0)
+    with pytest.raises(ValueError):
+        sweep.measure(one, np.zeros(1), np.zeros(1), (1.0, 1.0), none, np.zeros((1, 3)),
+                      np.zeros(2), math.inf, 0, 1e-7, 0.0)
     for cap, keep in ((-1, 0.0), (1, -1e-4), (1, math.nan)):        # a cap, a keep
         with pytest.raises(ValueError):
-            sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)),
-                          0, 1e-7, 0.0, cap=cap, keep=keep)
+            measure(cap=cap, keep=keep)
     # the pairs kept that stopped searches short: each must name faces the bodies have, and
     # the engine writes them
     sweep._stoppers[0] = (0, 10 ** 9)
     with pytest.raises(ValueError):
-        sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)), 0,
-                      1e-7, 0.0)
+        measure()
     sweep._stoppers = np.full((4, 2), -1, dtype=np.int64)
     sweep._stoppers.flags.writeable = False
     with pytest.raises((ValueError, BufferError)):
-        sweep.measure(one, np.zeros(1), np.zeros(1), np.ones(1), none, np.zeros((1, 3)), 0,
-                      1e-7, 0.0)
+        measure()
     sweep._stoppers = np.full((4, 2), -1, dtype=np.int64)
-    index, kind, touch = sweep.measure(one, np.array([-math.inf]), np.zeros(1), np.ones(1),
-                                       none, np.zeros((1, 3)), 0, 1e-7, 0.0)
-    assert (index, kind) == (0, PLACE) and touch is not None and len(touch.gaps) > 0
+    index, kind, touch, wide = sweep.measure(one, np.array([-math.inf]), np.zeros(1),
+                                             (1.0, 1.0), none, np.zeros((1, 3)), np.zeros(3),
+                                             math.inf, 0, 1e-7, 0.0)
+    assert (index, kind, wide) == (0, PLACE, False) and touch is not None
+    assert len(touch.gaps) > 0
+
+
+@pytest.mark.parametrize('name', ['sphere_bowl', 'key_pocket'])
+def test_a_move_beyond_the_pools_reach_is_measured_with_the_wide_window(name: str) -> None:
+    """A pose whose offset from where the pool was taken (its move plus the shift) exceeds
+    the reach in a coordinate is measured with the second window and said to be wide; one
+    within it with the first: each the features a search with that window finds."""
+    var = sc.variant(name, 'rotated')
+    push = var.push / np.linalg.norm(var.push)
+    _, _, touch, probes, _ = probing(var.fixed, var.moving, push, var.start, seed=7)
+    sweep = SweepPair(var.fixed, var.moving, push)
+    pool = (touch.gaps, np.zeros((len(touch.gaps), 3)), touch.faces)
+    near, far, reach, standoff = 1e-5, 3e-4, 1e-4, 1e-7
+    # a probe that stands free (one in collision is measured from lower down)
+    probes = probes[[sweep.touch(p, standoff).travel > 0.0 for p in probes]]
+    move = np.array([[0.0, 6e-5, 0.0]])
+    for shift, wide in ((np.array([-3e-5, 0.0, 0.0]), False),      # within the reach
+                        (np.array([0.0, 5e-5, 0.0]), True),        # 1.1e-4 in e2
+                        (np.array([0.0, 0.0, -1.2e-4]), True)):    # in the arc alone
+        _, kind, got, said = sweep.measure(probes[:1], np.array([-math.inf]), np.zeros(1),
+                                           (near, far), pool, move, shift, reach,
+                                           len(touch.gaps), standoff, 1e-3)
+        ref = sweep.touch(probes[0], standoff, far if wide else near)
+        assert kind == PLACE and got is not None and said == wide
+        assert np.array_equal(got.gaps, ref.gaps) and np.array_equal(got.faces, ref.faces)
+    assert len(sweep.touch(probes[0], standoff, far).gaps) > \
+        len(sweep.touch(probes[0], standoff, near).gaps)
 
 
 @pytest.mark.skipif(not (SHARED / 'tka_dm').is_dir(), reason='no shared total knee data')

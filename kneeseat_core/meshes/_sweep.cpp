@@ -1243,28 +1243,31 @@ Measured arrive(Sweep &s, const double *pose, double expected, double short_of, 
     return std::isfinite(s.best) ? kPlace : kLost;
 }
 
-// measure(fixed_view, moving_view, poses (m, 4, 4), needed (m,), expected (m,), windows (m,),
-// gaps (k,), slopes (k, 3), faces (k, 2), offsets (m, 3), count, standoff, deepest, bounds (7,),
-// start, seeds (c, 2) | None, cap, keep, stoppers (s, 2)) -> (index, kind, travel, features,
-// queries, pairs): from pose `start` on, the first that none of its witnesses refutes (the
-// `stoppers` first, then first_unrefuted's; with count 0 none is asked) moved along d to
-// contact (arrive: expected[i], short of needed[i], the features within windows[i], of those
-// beyond `keep` only the `cap` nearest: 0 keeps them all, `kept_features`); one found short
-// is passed over, the pair that stopped its search put first in `stoppers` (written in
-// place: pairs of face indices, newest first, -1 past the last; as many as it holds). kind
-// kPlace: the pose `index` reached its travel, with the features (bytes of Feature); kLost:
-// no contact along d from it; index m: every pose refuted or short. A search starts from the
-// pose's witnesses and the stoppers, or from `seeds` where none are asked. A needed travel
-// of +inf (or NaN) is passed over. Any pair that closes short of a pose's needed travel
-// refutes it exactly, and seeds only bound a search, so the stoppers change how fast the
-// answer comes, never the answer.
+// measure(fixed_view, moving_view, poses (m, 4, 4), needed (m,), expected (m,), near_window,
+// wide_window, reach, gaps (k,), slopes (k, 3), faces (k, 2), moves (m, 3), shift (3,), count,
+// standoff, deepest, bounds (7,), start, seeds (c, 2) | None, cap, keep, stoppers (s, 2)) ->
+// (index, kind, travel, features, queries, pairs, wide): from pose `start` on, the first that
+// none of its witnesses refutes (the `stoppers` first, then first_unrefuted's, at the lateral
+// offset moves[i] + shift from where the pool was taken; with count 0 none is asked) moved
+// along d to contact (arrive: expected[i], short of needed[i], the features within the wide
+// window where that offset exceeds `reach` in a coordinate - `wide` - and within the near one
+// elsewhere, of those beyond `keep` only the `cap` nearest: 0 keeps them all,
+// `kept_features`); one found short is passed over, the pair that stopped its search put
+// first in `stoppers` (written in place: pairs of face indices, newest first, -1 past the
+// last; as many as it holds). kind kPlace: the pose `index` reached its travel, with the
+// features (bytes of Feature); kLost: no contact along d from it; index m: every pose refuted
+// or short. A search starts from the pose's witnesses and the stoppers, or from `seeds` where
+// none are asked. A needed travel of +inf (or NaN) is passed over. Any pair that closes short
+// of a pose's needed travel refutes it exactly, and seeds only bound a search, so the
+// stoppers change how fast the answer comes, never the answer.
 PyObject *measure(PyObject *, PyObject *args) {
-    PyObject *fo, *mo, *po, *no, *eo, *wo, *go, *so, *qo, *oo, *bo, *co, *xo;
+    PyObject *fo, *mo, *po, *no, *eo, *go, *so, *qo, *oo, *ho, *bo, *co, *xo;
     Py_ssize_t count, start, cap;
-    double standoff, deepest, keep;
+    double near_window, wide_window, reach, standoff, deepest, keep;
     Sweep s;
-    if (!PyArg_ParseTuple(args, "O!O!OOOOOOOOnddOnOndO", &ViewType, &fo, &ViewType, &mo, &po, &no, &eo, &wo, &go,
-                          &so, &qo, &oo, &count, &standoff, &deepest, &bo, &start, &co, &cap, &keep, &xo))
+    if (!PyArg_ParseTuple(args, "O!O!OOOdddOOOOOnddOnOndO", &ViewType, &fo, &ViewType, &mo, &po, &no, &eo,
+                          &near_window, &wide_window, &reach, &go, &so, &qo, &oo, &ho, &count, &standoff,
+                          &deepest, &bo, &start, &co, &cap, &keep, &xo))
         return nullptr;
     if (!take_views(fo, mo, s)) return nullptr;
     Py_buffer bufs[11];
@@ -1274,12 +1277,12 @@ PyObject *measure(PyObject *, PyObject *args) {
     if (ok && bufs[0].len != 128 * m) ok = false;
     ok = ok && get_sized(no, bufs[1], "d", m, "needed") && ++held;
     ok = ok && get_sized(eo, bufs[2], "d", m, "expected") && ++held;
-    ok = ok && get_sized(wo, bufs[3], "d", m, "windows") && ++held;
-    ok = ok && get_buffer(go, &bufs[4], "d", 8, "gaps") && ++held;
-    Py_ssize_t k = ok ? bufs[4].len / 8 : 0;
-    ok = ok && get_sized(so, bufs[5], "d", 3 * k, "slopes") && ++held;
-    ok = ok && get_sized(qo, bufs[6], "q", 2 * k, "faces") && ++held;
-    ok = ok && get_sized(oo, bufs[7], "d", 3 * m, "offsets") && ++held;
+    ok = ok && get_buffer(go, &bufs[3], "d", 8, "gaps") && ++held;
+    Py_ssize_t k = ok ? bufs[3].len / 8 : 0;
+    ok = ok && get_sized(so, bufs[4], "d", 3 * k, "slopes") && ++held;
+    ok = ok && get_sized(qo, bufs[5], "q", 2 * k, "faces") && ++held;
+    ok = ok && get_sized(oo, bufs[6], "d", 3 * m, "moves") && ++held;
+    ok = ok && get_sized(ho, bufs[7], "d", 3, "shift") && ++held;
     ok = ok && get_sized(bo, bufs[8], "d", 7, "bounds") && ++held;
     Py_ssize_t c = 0;
     const int64_t *seeds = nullptr;
@@ -1297,29 +1300,27 @@ PyObject *measure(PyObject *, PyObject *args) {
     Py_ssize_t stopping = 0;
     while (stopping < most && stoppers[2 * stopping] >= 0) ++stopping;
     ok = ok && kept_stoppers.len == 16 * most && faces_of(s, stoppers, stopping);
-    const int64_t *faces = ok ? static_cast<const int64_t *>(bufs[6].buf) : nullptr;
+    const int64_t *faces = ok ? static_cast<const int64_t *>(bufs[5].buf) : nullptr;
     ok = ok && faces_of(s, faces, k);
-    const double *windows = ok ? static_cast<const double *>(bufs[3].buf) : nullptr;
-    for (Py_ssize_t i = 0; ok && i < m; ++i) ok = windows[i] >= 0.0;
     const double *expected_ = ok ? static_cast<const double *>(bufs[2].buf) : nullptr;
     for (Py_ssize_t i = 0; ok && i < m; ++i) ok = std::isfinite(expected_[i]);
     if (ok && (!(standoff > 0.0) || !std::isfinite(standoff) || !(deepest >= 0.0) || count < 0 || start < 0 ||
-               cap < 0 || !(keep >= 0.0)))
+               cap < 0 || !(keep >= 0.0) || !(near_window >= 0.0) || !(wide_window >= 0.0) || std::isnan(reach)))
         ok = false;
     if (!ok) {
         if (!PyErr_Occurred())
-            PyErr_SetString(PyExc_ValueError, "measure: poses (m, 4, 4), needed, finite expected and windows "
-                                              "(m,), gaps (k,), slopes (k, 3), faces (k, 2) and seeds (c, 2) of "
-                                              "face indices, offsets (m, 3), bounds (7,), stoppers (s, 2) of face "
-                                              "indices up to the first -1; standoff positive; windows, count, "
-                                              "deepest, start, cap and keep not negative");
+            PyErr_SetString(PyExc_ValueError, "measure: poses (m, 4, 4), needed and finite expected (m,), gaps "
+                                              "(k,), slopes (k, 3), faces (k, 2) and seeds (c, 2) of face "
+                                              "indices, moves (m, 3), shift (3,), bounds (7,), stoppers (s, 2) "
+                                              "of face indices up to the first -1; standoff positive; windows, "
+                                              "count, deepest, start, cap and keep not negative, reach a number");
         for (int i = 0; i < held; ++i) PyBuffer_Release(&bufs[i]);
         return nullptr;
     }
     const double *p = static_cast<const double *>(bufs[0].buf), *needed = static_cast<const double *>(bufs[1].buf),
-                 *expected = static_cast<const double *>(bufs[2].buf), *gaps = static_cast<const double *>(bufs[4].buf),
-                 *slopes = static_cast<const double *>(bufs[5].buf), *offsets = static_cast<const double *>(bufs[7].buf),
-                 *bounds = static_cast<const double *>(bufs[8].buf);
+                 *expected = static_cast<const double *>(bufs[2].buf), *gaps = static_cast<const double *>(bufs[3].buf),
+                 *slopes = static_cast<const double *>(bufs[4].buf), *moves = static_cast<const double *>(bufs[6].buf),
+                 *shift = static_cast<const double *>(bufs[7].buf), *bounds = static_cast<const double *>(bufs[8].buf);
     std::vector<std::pair<double, int32_t>> ranked;
     std::vector<int64_t> picked;
     std::vector<int32_t> vertices, stack;
@@ -1331,8 +1332,16 @@ PyObject *measure(PyObject *, PyObject *args) {
     // running into the same part of the fixed body where the pool, taken near it, names
     // none of it; each search found short here adds its own, the oldest going
     Py_ssize_t i = start;
+    bool wide = false;
     for (; i < m; ++i) {
         if (std::isnan(needed[i]) || needed[i] == kInf) continue;
+        // the pose's lateral offset from where the pool was taken, and whether that is
+        // beyond its reach (the pool then names too little of what closes first there: a
+        // place found is measured with the wide window, to become the pool)
+        double offset[3];
+        for (int j = 0; j < 3; ++j) offset[j] = moves[3 * i + j] + shift[j];
+        wide = std::max(std::max(std::fabs(offset[0]), std::fabs(offset[1])), std::fabs(offset[2])) > reach;
+        const double window = wide ? wide_window : near_window;
         const int64_t *from = seeds;
         Py_ssize_t from_count = c;
         if (count > 0) {
@@ -1342,8 +1351,8 @@ PyObject *measure(PyObject *, PyObject *args) {
                 vertices.clear();
                 stopped = pair_short(s, stoppers + 2 * j, needed[i], standoff, vertices);
             }
-            if (stopped || witness_short(s, gaps, slopes, faces, k, offsets + 3 * i, count, needed[i], standoff,
-                                         deepest, ranked, picked, vertices, stack))
+            if (stopped || witness_short(s, gaps, slopes, faces, k, offset, count, needed[i], standoff, deepest,
+                                         ranked, picked, vertices, stack))
                 continue;
             // the search starts from the stoppers too: a tighter bound from its first visit
             picked.insert(picked.end(), stoppers, stoppers + 2 * stopping);
@@ -1351,8 +1360,8 @@ PyObject *measure(PyObject *, PyObject *args) {
             from_count = static_cast<Py_ssize_t>(picked.size() / 2);
         }
         // a window that reaches no further than what is kept whole needs no cap
-        s.cap = windows[i] > keep ? static_cast<size_t>(cap) : 0;
-        kind = arrive(s, p + 16 * i, expected[i], needed[i], windows[i], standoff, bounds, from, from_count, queries);
+        s.cap = window > keep ? static_cast<size_t>(cap) : 0;
+        kind = arrive(s, p + 16 * i, expected[i], needed[i], window, standoff, bounds, from, from_count, queries);
         if (kind != kShort) break;
         if (count > 0 && most > 0 && s.stopper[0] >= 0) {      // the newest first, each once
             Py_ssize_t j = 0;
@@ -1370,10 +1379,11 @@ PyObject *measure(PyObject *, PyObject *args) {
     std::vector<Feature> kept;
     if (i < m && kind == kPlace) kept = kept_features(s);
     static const char nothing = 0;
-    return Py_BuildValue("(nidy#ll)", std::min(i, m), static_cast<int>(i < m ? kind : kShort),
+    return Py_BuildValue("(nidy#llN)", std::min(i, m), static_cast<int>(i < m ? kind : kShort),
                          i < m && kind == kPlace ? s.best : -kInf,
                          kept.empty() ? &nothing : reinterpret_cast<const char *>(kept.data()),
-                         static_cast<Py_ssize_t>(kept.size() * sizeof(Feature)), queries, s.pairs);
+                         static_cast<Py_ssize_t>(kept.size() * sizeof(Feature)), queries, s.pairs,
+                         PyBool_FromLong(i < m && wide));
 }
 
 PyMethodDef module_methods[] = {
@@ -1381,9 +1391,9 @@ PyMethodDef module_methods[] = {
      "first_unrefuted(fixed_view, moving_view, poses, needed, gaps, slopes, faces, offsets, count, behind, "
      "deepest, start) -> (index, witnesses)"},
     {"measure", measure, METH_VARARGS,
-     "measure(fixed_view, moving_view, poses, needed, expected, windows, gaps, slopes, faces, offsets, count, "
-     "standoff, deepest, bounds, start, seeds, cap, keep, stoppers) -> (index, kind, travel, features, queries, "
-     "pairs)"},
+     "measure(fixed_view, moving_view, poses, needed, expected, near_window, wide_window, reach, gaps, slopes, "
+     "faces, moves, shift, count, standoff, deepest, bounds, start, seeds, cap, keep, stoppers) -> (index, kind, "
+     "travel, features, queries, pairs, wide)"},
     {"travels", travels, METH_VARARGS,
      "travels(fixed_view, moving_view, poses, behind, window, limit[, short_of]) -> (travels, buried, pairs)"},
     {"contacts", contacts, METH_VARARGS,

@@ -16,7 +16,8 @@ def contacts(fixed: View, moving: View, pose: Any, behind: float, window: float,
 def first_unrefuted(fixed: View, moving: View, poses: Any, needed: Any, gaps: Any, slopes: Any,
                     faces: Any, offsets: Any, count: int, behind: float, deepest: float,
                     start: int) -> tuple[int, bytes]: ...
-def measure(fixed: View, moving: View, poses: Any, needed: Any, expected: Any, windows: Any,
-            gaps: Any, slopes: Any, faces: Any, offsets: Any, count: int, standoff: float,
-            deepest: float, bounds: Any, start: int, seeds: Any, cap: int, keep: float,
-            stoppers: Any) -> tuple[int, int, float, bytes, int, int]: ...
+def measure(fixed: View, moving: View, poses: Any, needed: Any, expected: Any,
+            near_window: float, wide_window: float, reach: float, gaps: Any, slopes: Any,
+            faces: Any, moves: Any, shift: Any, count: int, standoff: float, deepest: float,
+            bounds: Any, start: int, seeds: Any, cap: int, keep: float, stoppers: Any
+            ) -> tuple[int, int, float, bytes, int, int, bool]: ...

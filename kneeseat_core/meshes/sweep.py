@@ -277,44 +277,49 @@ class SweepPair:
         self.pairs += pairs
         return _touch(travel, bool(buried), raw)
 
-    def measure(self, poses: Floats, needed: Floats, expected: Floats, windows: Floats,
-                pool: tuple[Floats, Floats, Ints], offsets: Floats, count: int, standoff: float,
-                deepest: float, start: int = 0, seeds: Ints | None = None, cap: int = 0,
-                keep: float = 0.0) -> tuple[int, int, Touch | None]:
+    def measure(self, poses: Floats, needed: Floats, expected: Floats,
+                windows: tuple[float, float], pool: tuple[Floats, Floats, Ints], moves: Floats,
+                shift: Floats, reach: float, count: int, standoff: float, deepest: float,
+                start: int = 0, seeds: Ints | None = None, cap: int = 0,
+                keep: float = 0.0) -> tuple[int, int, Touch | None, bool]:
         """From `start` on, the first of `poses` (m, 4, 4) that none of its witnesses
-        refutes (`first_unrefuted`, with `count` witnesses and `standoff` the depth below a
-        pose a pair is not counted at; none asked with `count` 0; before them, the pairs that
-        stopped this pair's earlier searches short, the latest `STOPPERS`: the moves about a
-        place run into the same part of the fixed body, of which the pool, taken near it,
-        may name nothing) and whose search does not find it short of `needed` (m,): its
-        index, `PLACE` and the travel from it with the features within `windows` (m,)
+        refutes (`first_unrefuted`, with `count` witnesses, each pose at the lateral offset
+        `moves` (m, 3) + `shift` (3,) from where the pool was taken, and `standoff` the depth
+        below a pose a pair is not counted at; none asked with `count` 0; before them, the
+        pairs that stopped this pair's earlier searches short, the latest `STOPPERS`: the
+        moves about a place run into the same part of the fixed body, of which the pool,
+        taken near it, may name nothing) and whose search does not find it short of `needed`
+        (m,): its index, `PLACE` and the travel from it with the features within its window
         beyond (the pose lowered first by twice the travel `expected` (m,) where that is
         negative, plus the standoff, and four times further while the lowered pose is
         buried); or its index and `LOST` where no contact lies along Δ from it; or (m,
-        SHORT, None) where every pose is refuted or short. A needed
-        travel of +inf is passed over; -inf stops no search. A search starts from the pose's
-        witnesses, or from `seeds` where none are asked. `cap` (0: none): of the features
-        more than `keep` beyond the travel only the `cap` that close first are kept (ties
-        kept), and the search prunes by them as by the window."""
+        SHORT, None) where every pose is refuted or short; and whether the pose found is
+        wide: its offset exceeds `reach` in a coordinate (the pool is too far to name what
+        closes first there), its window then the second of `windows` (near, wide), the first
+        elsewhere. A needed travel of +inf is passed over; -inf stops no search. A search
+        starts from the pose's witnesses, or from `seeds` where none are asked. `cap` (0:
+        none): of the features more than `keep` beyond the travel only the `cap` that close
+        first are kept (ties kept), and the search prunes by them as by the window."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         gaps, slopes, faces = pool
-        index, kind, travel, raw, queries, pairs = _sweep.measure(
+        index, kind, travel, raw, queries, pairs, wide = _sweep.measure(
             self._fixed_view, self._moving_view(poses[0]), poses,
             np.ascontiguousarray(needed, dtype=np.float64),
             np.ascontiguousarray(expected, dtype=np.float64),
-            np.ascontiguousarray(windows, dtype=np.float64),
+            float(windows[0]), float(windows[1]), float(reach),
             np.ascontiguousarray(gaps, dtype=np.float64),
             np.ascontiguousarray(slopes, dtype=np.float64),
             np.ascontiguousarray(faces, dtype=np.int64),
-            np.ascontiguousarray(offsets, dtype=np.float64), int(count), float(standoff),
+            np.ascontiguousarray(moves, dtype=np.float64),
+            np.ascontiguousarray(shift, dtype=np.float64), int(count), float(standoff),
             float(deepest), self._bounds, int(start),
             None if seeds is None else np.ascontiguousarray(seeds, dtype=np.int64),
             int(cap), float(keep), self._stoppers)
         self.queries += queries
         self.pairs += pairs
         if kind != PLACE:
-            return index, kind, None
-        return index, kind, _touch(travel, False, raw)
+            return index, kind, None, wide
+        return index, kind, _touch(travel, False, raw), wide
 
     def first_unrefuted(self, poses: Floats, needed: Floats, pool: tuple[Floats, Floats, Ints],
                         offsets: Floats, count: int, behind: float, deepest: float,

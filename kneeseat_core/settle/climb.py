@@ -99,8 +99,9 @@ class _Short:
 
 
 _SHORT = _Short()
-# no pool: a single pose is measured without witnesses
+# no pool: a single pose is measured without witnesses, where it stands
 _NO_POOL = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
+_NO_MOVE = np.zeros((1, 3))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -158,10 +159,11 @@ class _Climb:
         never the answer)."""
         t = self.tuning
         window = t.window_res if window_res is None else window_res
-        _, kind, touch = self.sweep.measure(
-            target[None], np.array([short_of]), np.array([expected]),
-            np.array([window * self.search.params.resolution_m]), _NO_POOL, np.zeros((1, 3)), 0,
-            self.standoff, 0.0, 0, seeds, cap=t.pool_cap, keep=self.windows[0])
+        length = window * self.search.params.resolution_m
+        _, kind, touch, _ = self.sweep.measure(
+            target[None], np.array([short_of]), np.array([expected]), (length, length), _NO_POOL,
+            _NO_MOVE, _NO_MOVE[0], math.inf, 0, self.standoff, 0.0, 0, seeds, cap=t.pool_cap,
+            keep=self.windows[0])
         if kind == SHORT:
             return _SHORT
         if touch is None:
@@ -219,7 +221,8 @@ class _Climb:
     def _beyond_pool(self, offsets: Floats) -> Bools:
         """Whether the pool is too far from each lateral state `offsets` (..., 3) away from
         where it was taken to name the pairs that close first there: a place there becomes
-        the pool when the climb moves to it, so it is measured with the pool's window."""
+        the pool when the climb moves to it, so it is measured with the pool's window (the
+        engine applies the same rule to the moves `_try` measures, `SweepPair.measure`)."""
         out: Bools = np.abs(offsets).max(axis=-1) > self.pool_reach
         return out
 
@@ -431,25 +434,27 @@ class _Climb:
         # penetration from a lateral move of length l is at most its steepest slope times l:
         # a vertex that far above a face is through it
         deepest = STEEPEST * longest + self.standoff
-        offsets = moves + (here.state - self.pool.state)
-        wide = self._beyond_pool(offsets)
-        windows = np.where(wide, self.windows[1], self.windows[0])
+        # a move's offset from where the pool was taken is the move and this; one beyond the
+        # pool's reach is measured with the pool's window (`_beyond_pool`'s rule, applied by
+        # the engine)
+        shift = here.state - self.pool.state
         i = 0
         while True:
             # the next move that its witnesses (the pairs the pool says close first there)
             # do not refute, measured from them (none short of the travel needed, they bound
             # it from above), its search stopping once a contact short of it is found; a
             # move found short is passed over
-            i, kind, touch = sweep.measure(targets, needed, needed, windows,
-                                           (pool.gaps, pool.slopes, pool.faces), offsets,
-                                           t.witnesses, self.standoff, deepest, i,
-                                           cap=t.pool_cap, keep=self.windows[0])
+            i, kind, touch, wide = sweep.measure(targets, needed, needed, self.windows,
+                                                 (pool.gaps, pool.slopes, pool.faces), moves,
+                                                 shift, self.pool_reach, t.witnesses,
+                                                 self.standoff, deepest, i, cap=t.pool_cap,
+                                                 keep=self.windows[0])
             if i >= len(moves):
                 return None
             if touch is None:
                 return (Status.LOST, LOST_CONTACT)
             # a lateral move adds itself to the state (a lift along Δ changes none of it)
-            place = self._place(targets[i], touch, bool(wide[i]), here.state + moves[i])
+            place = self._place(targets[i], touch, wide, here.state + moves[i])
             if place.value - here.value >= gain:
                 return place
             i += 1
