@@ -1095,6 +1095,33 @@ bool vertex_short(Sweep &s, std::vector<int32_t> &vertices, double needed, doubl
     return false;
 }
 
+// The pairs that stopped a settle's earlier searches short (its stoppers: the caller's
+// buffer of `stopping` pairs of face ids, newest first): the moves about one place run into
+// the same part of the fixed body, of which the pool, taken near the place, may name nothing.
+// Whether one of them closes short of `needed` with the moving body placed by the sweep.
+bool stoppers_short(Sweep &s, const int64_t *stoppers, Py_ssize_t stopping, double needed, double behind,
+                    std::vector<int32_t> &scratch) {
+    for (Py_ssize_t j = 0; j < stopping; ++j) {
+        scratch.clear();
+        if (pair_short(s, stoppers + 2 * j, needed, behind, scratch)) return true;
+    }
+    return false;
+}
+
+// `pair` put first among the `stopping` stoppers (a buffer of room for `most`): moved there
+// where it is one already, else added, the oldest going when the buffer is full.
+void remember_stopper(int64_t *stoppers, Py_ssize_t &stopping, Py_ssize_t most, const int64_t pair[2]) {
+    Py_ssize_t j = 0;
+    while (j < stopping && !(stoppers[2 * j] == pair[0] && stoppers[2 * j + 1] == pair[1])) ++j;
+    if (j == stopping && stopping < most) ++stopping;
+    for (j = std::min(j, stopping - 1); j > 0; --j) {
+        stoppers[2 * j] = stoppers[2 * j - 2];
+        stoppers[2 * j + 1] = stoppers[2 * j - 1];
+    }
+    stoppers[0] = pair[0];
+    stoppers[1] = pair[1];
+}
+
 // Whether a witness of the sweep's pose closes short of `needed`: the `count` features of a
 // pool (gaps (k,), slopes (k, 3) over the lateral state, faces (k, 2)) that the pool's
 // first-order model says close first after the lateral move `offset` (3,) from where it
@@ -1292,7 +1319,7 @@ PyObject *measure(PyObject *, PyObject *args) {
         seeds = ok ? static_cast<const int64_t *>(bufs[9].buf) : nullptr;
         ok = ok && bufs[9].len == 16 * c && faces_of(s, seeds, c);
     }
-    // written: the pairs that stopped earlier searches short (below)
+    // the settle's stoppers (stoppers_short), the one buffer written
     Py_buffer &kept_stoppers = bufs[held];
     ok = ok && get_buffer(xo, &kept_stoppers, "q", 8, "stoppers", PyExc_TypeError, true) && ++held;
     Py_ssize_t most = ok ? kept_stoppers.len / 16 : 0;
@@ -1327,10 +1354,6 @@ PyObject *measure(PyObject *, PyObject *args) {
     long queries = 0;
     Measured kind = kShort;
     s.keep = keep;
-    // the pairs that stopped earlier searches short (the caller's, newest first, -1 past
-    // the last): a pose is asked them before its witnesses, the moves about one place
-    // running into the same part of the fixed body where the pool, taken near it, names
-    // none of it; each search found short here adds its own, the oldest going
     Py_ssize_t i = start;
     bool wide = false;
     for (; i < m; ++i) {
@@ -1346,13 +1369,9 @@ PyObject *measure(PyObject *, PyObject *args) {
         Py_ssize_t from_count = c;
         if (count > 0) {
             s.place(p + 16 * i);
-            bool stopped = false;
-            for (Py_ssize_t j = 0; j < stopping && !stopped; ++j) {
-                vertices.clear();
-                stopped = pair_short(s, stoppers + 2 * j, needed[i], standoff, vertices);
-            }
-            if (stopped || witness_short(s, gaps, slopes, faces, k, offset, count, needed[i], standoff, deepest,
-                                         ranked, picked, vertices, stack))
+            if (stoppers_short(s, stoppers, stopping, needed[i], standoff, vertices) ||
+                witness_short(s, gaps, slopes, faces, k, offset, count, needed[i], standoff, deepest, ranked,
+                              picked, vertices, stack))
                 continue;
             // the search starts from the stoppers too: a tighter bound from its first visit
             picked.insert(picked.end(), stoppers, stoppers + 2 * stopping);
@@ -1363,17 +1382,8 @@ PyObject *measure(PyObject *, PyObject *args) {
         s.cap = window > keep ? static_cast<size_t>(cap) : 0;
         kind = arrive(s, p + 16 * i, expected[i], needed[i], window, standoff, bounds, from, from_count, queries);
         if (kind != kShort) break;
-        if (count > 0 && most > 0 && s.stopper[0] >= 0) {      // the newest first, each once
-            Py_ssize_t j = 0;
-            while (j < stopping && !(stoppers[2 * j] == s.stopper[0] && stoppers[2 * j + 1] == s.stopper[1])) ++j;
-            if (j == stopping && stopping < most) ++stopping;
-            for (j = std::min(j, stopping - 1); j > 0; --j) {
-                stoppers[2 * j] = stoppers[2 * j - 2];
-                stoppers[2 * j + 1] = stoppers[2 * j - 1];
-            }
-            stoppers[0] = s.stopper[0];
-            stoppers[1] = s.stopper[1];
-        }
+        // the pair that stopped this search short, asked of the later poses first
+        if (count > 0 && most > 0 && s.stopper[0] >= 0) remember_stopper(stoppers, stopping, most, s.stopper);
     }
     for (int j = 0; j < held; ++j) PyBuffer_Release(&bufs[j]);
     std::vector<Feature> kept;
