@@ -11,15 +11,17 @@ setup(
     packages=find_packages(include=['kneeseat_core', 'kneeseat_core.*',
                                     'kneeseat_ros', 'kneeseat_ros.*']),
     package_data={'kneeseat_core': ['py.typed', 'data/*', 'meshes/_sweep.pyi',
-                                    'settle/_simplex.pyi', 'settle/_moves.pyi']},
+                                    'settle/_simplex.pyi', 'settle/_moves.pyi',
+                                    '_libm.pyi']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml')),
     ],
     # compiled C++: the exact travel along the push (kneeseat_core/meshes/sweep.py), the
-    # climb's small linear program (kneeseat_core/settle/model.py) and the moves it tries,
-    # planned with the ligaments weighed (kneeseat_core/settle/planner.py)
+    # climb's small linear program (kneeseat_core/settle/model.py), the moves it tries,
+    # planned with the ligaments weighed (kneeseat_core/settle/planner.py), and the C
+    # library's elementary functions of arrays (kneeseat_core/libm.py)
     ext_modules=[Extension(name, [source], extra_compile_args=['-O3', '-std=c++17'],
                            depends=['kneeseat_core/_buffers.h', 'kneeseat_core/_tissue.h',
                                     'kneeseat_core/_feature.h'],
@@ -29,7 +31,8 @@ setup(
                                       ('kneeseat_core.settle._simplex',
                                        'kneeseat_core/settle/_simplex.cpp'),
                                       ('kneeseat_core.settle._moves',
-                                       'kneeseat_core/settle/_moves.cpp'))],
+                                       'kneeseat_core/settle/_moves.cpp'),
+                                      ('kneeseat_core._libm', 'kneeseat_core/_libm.cpp'))],
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='kneeseat developers',

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
 import subprocess
@@ -167,6 +168,42 @@ def test_stl_hash_is_stable_across_processes() -> None:
     here = synth.default_knee()
     assert out.stdout.strip() == ' '.join(hashlib.sha256(synth.stl_bytes(here[n])).hexdigest()
                                           for n in ('femur', 'tibia', 'patella'))
+
+
+@pytest.mark.parametrize('name', ['sin', 'cos', 'exp', 'log', 'log1p', 'power'])
+def test_libm_gives_math_bits(name: str) -> None:
+    """The meshes' elementary functions (a compiled loop) are Python's `math` functions,
+    element by element, bit for bit: on arguments across their ranges, and their edges."""
+    rng = np.random.default_rng(20261207)
+    x = np.concatenate([rng.normal(0.0, 10.0, 20000), rng.uniform(-700.0, 700.0, 20000),
+                        [0.0, -0.0, 5e-324, 1e-300, 0.5, 1.0, -1.0, 709.0, -745.0]])
+    reference: Callable[[float], float]
+    if name in ('log', 'log1p', 'power'):
+        x = np.abs(x)
+        x = x[x > 0.0] if name == 'log' else x
+    if name == 'power':
+        for p in (0.25, 1.0 / 3.0, 4.0):
+            grid = x[:len(x) // 7 * 7].reshape(-1, 7)       # any shape, kept
+            got = synth.libm.power(grid, p)
+            assert got.shape == grid.shape
+            want = np.array([math.pow(v, p) for v in grid.ravel().tolist()])
+            assert np.array_equal(got.ravel().view(np.int64), want.view(np.int64))
+        return
+    if name == 'exp':
+        x = x[x < 709.5]
+    reference = getattr(math, name)
+    got = getattr(synth.libm, name)(x)
+    want = np.array([reference(v) for v in x.tolist()])
+    assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
+@pytest.mark.parametrize('call', [lambda: synth.libm.log(np.array([1.0, 0.0])),
+                                  lambda: synth.libm.exp(np.array([1000.0])),
+                                  lambda: synth.libm.power(np.array([-2.0]), 0.5)])
+def test_libm_refuses_what_math_refuses(call: Callable[[], object]) -> None:
+    """Where `math` raises (no finite value for a finite argument), so do they."""
+    with pytest.raises(ValueError, match='no finite value'):
+        call()
 
 
 def test_write_default_knee_is_atomic_and_idempotent(tmp_path: Path) -> None:

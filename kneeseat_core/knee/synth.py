@@ -59,7 +59,7 @@ import platform
 import numpy as np
 import trimesh
 
-from kneeseat_core import libm
+from kneeseat_core import _libm, libm
 from kneeseat_core.files import file_sha256, write_bytes
 from kneeseat_core.typed import Floats, Ints
 from . import solids
@@ -384,10 +384,11 @@ GENERATED = 'generated.json'
 @functools.cache
 def generator_key() -> str:
     """SHA-256 (hex) of everything the default knee's bytes follow from: the source of the
-    code that makes them (this module, `solids`, `kneeseat_core.libm`), the versions of
-    numpy and trimesh, and the C library and CPU family whose functions `libm` calls."""
+    code that makes them (this module, `solids`, `kneeseat_core.libm` and its compiled
+    loop), the versions of numpy and trimesh, and the C library and CPU family whose
+    functions `libm` calls."""
     h = hashlib.sha256()
-    for module in (__file__, solids.__file__, libm.__file__):
+    for module in (__file__, solids.__file__, libm.__file__, _libm.__file__):
         h.update(Path(module).read_bytes())
     h.update(repr((np.__version__, trimesh.__version__, platform.libc_ver(),
                    platform.machine())).encode())
