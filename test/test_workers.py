@@ -10,6 +10,7 @@ import os
 from pathlib import Path
 import subprocess
 import sys
+import threading
 from typing import Any, Callable
 
 import numpy as np
@@ -21,6 +22,8 @@ from kneeseat_core.knee import load_config, materialise_default_knee
 from kneeseat_core.meshes import sweep_body
 from kneeseat_core.sweep import (InlineExecutor, prepare_worker, process_executor,
                                  scene_bodies, SceneSpec, sweep)
+from kneeseat_core.sweep.chains import run_chain
+from kneeseat_core.sweep.executors import LocalPool, submitted_ahead
 from kneeseat_core.sweep.scene import scene_builds
 
 GRID = {'flexion_deg': [0, -20, 10], 'varus_deg': [-5, 5, 5]}
@@ -77,6 +80,50 @@ def test_the_default_pool_starts_its_workers_with_the_scene_the_sweep_built(
     assert result.converged.all()
     assert os.getpid() not in workers
     assert builds == {built_here}       # what each worker inherited, and nothing since
+
+
+class Counting(LocalPool):
+    """The default pool, counting the chains submitted and not yet finished, in the order
+    they were submitted."""
+
+    def __init__(self) -> None:
+        super().__init__(2, multiprocessing.get_context('fork'))
+        self.outstanding = self.most = 0
+        self.chains: list[tuple[tuple[int, int], ...]] = []
+        self._lock = threading.Lock()
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        future = super().submit(fn, *args, **kwargs)
+        if fn is run_chain:
+            with self._lock:
+                self.outstanding += 1
+                self.most = max(self.most, self.outstanding)
+                self.chains.append(args[0].cells)
+            future.add_done_callback(self._finished)
+        return future
+
+    def _finished(self, _: Future[Any]) -> None:
+        with self._lock:
+            self.outstanding -= 1
+
+
+@pytest.mark.skipif('fork' not in multiprocessing.get_all_start_methods(),
+                    reason='the default pool forks its workers where the platform forks')
+def test_a_sweep_keeps_no_more_chains_submitted_than_the_pool_can_take(
+        tmp_path: Path) -> None:
+    """The default pool of two workers is given at most three chains at a time, the others
+    waiting in the sweep's order; the table is the one settled in-process."""
+    config = load_config(materialise_default_knee(tmp_path), None,
+                         {'grid': {'flexion_deg': [0, -30, 5], 'varus_deg': [-3, 3, 1]}})
+    assert submitted_ahead(process_executor(1)) is None           # in-process: as submitted
+    with Counting() as pool:
+        assert submitted_ahead(pool) == 3
+        result = sweep(config, pool)
+    assert pool.most == 3
+    assert len(pool.chains) > 3 * pool.most
+    inline = sweep(config, InlineExecutor())
+    assert np.array_equal(result.position_m, inline.position_m)
+    assert np.array_equal(result.orientation_xyzw, inline.orientation_xyzw)
 
 
 def test_preparing_builds_the_scene_once_per_process(tmp_path: Path) -> None:

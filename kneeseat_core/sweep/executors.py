@@ -8,9 +8,10 @@ from __future__ import annotations
 
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 import multiprocessing
+import multiprocessing.context
 from typing import Callable, ParamSpec, TypeVar
 
-__all__ = ['InlineExecutor', 'process_executor', 'executor_for']
+__all__ = ['InlineExecutor', 'LocalPool', 'process_executor', 'executor_for', 'submitted_ahead']
 
 _P = ParamSpec('_P')
 _T = TypeVar('_T')
@@ -32,6 +33,28 @@ class InlineExecutor(Executor):
         return future
 
 
+class LocalPool(ProcessPoolExecutor):
+    """The process pool of a local build, which says how many workers it has (`workers`):
+    a sweep then keeps no more chains submitted than they can take (`submitted_ahead`)."""
+
+    def __init__(self, workers: int, mp_context: multiprocessing.context.BaseContext) -> None:
+        super().__init__(max_workers=workers, mp_context=mp_context)
+        self.workers = workers
+
+
+def submitted_ahead(executor: Executor) -> int | None:
+    """How many chains a sweep keeps submitted to `executor` and not finished, the rest
+    waiting in the sweep's own order (`kneeseat_core.sweep.phases`): for a local pool, its
+    workers and one more, so that a worker finds its next chain queued when it finishes one
+    and a chain that becomes ready (the next segment of a spine) waits behind at most one.
+    A pool takes what is submitted in turn: given every ready chain at once, it ran the
+    default knee's patella spine, each segment queued behind the tibia's ribs, last and
+    alone (0.36 s of one idle worker at the end of a 6.3 s sweep). None (every ready chain
+    at once) for other executors: one that runs a chain as it is submitted, or a Dask
+    cluster, whose workers may come and go."""
+    return executor.workers + 1 if isinstance(executor, LocalPool) else None
+
+
 def process_executor(workers: int) -> Executor:
     """The default executor: in-process for one worker, else a process pool.
 
@@ -44,8 +67,7 @@ def process_executor(workers: int) -> Executor:
     if workers <= 1:
         return InlineExecutor()
     method = 'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn'
-    return ProcessPoolExecutor(max_workers=workers,
-                               mp_context=multiprocessing.get_context(method))
+    return LocalPool(workers, multiprocessing.get_context(method))
 
 
 def executor_for(workers: int, scheduler: str | None) -> tuple[Executor, Callable[[], None]]:

@@ -15,7 +15,10 @@ along chains of three kinds:
 A chain runs as soon as the cells it starts from are settled (`sweep`): a rib as soon as
 its spine cell and the ribs beside it, the next spine segment as soon as the last one, so
 the ribs of the first flexion values keep every worker busy while the spine goes on, and no
-phase waits for another. Chains run on any `concurrent.futures.Executor`
+phase waits for another. Of the chains ready, those listed first go first: a local pool is
+given only as many as its workers can take (`submitted_ahead`), so a spine's next segment
+goes before the ribs that wait already, and the spines are done long before the last ribs.
+Chains run on any `concurrent.futures.Executor`
 (`kneeseat_core.sweep.executors`); a chain is the same computation whenever and wherever
 it runs, so the table does not depend on the order. A body whose attitude ignores varus
 (`varus_fraction: 0`, e.g. a patella) is settled on its spine only and copied across
@@ -47,6 +50,7 @@ from __future__ import annotations
 
 from concurrent.futures import Executor, FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
+import heapq
 import math
 from pathlib import Path
 import time
@@ -61,6 +65,7 @@ from kneeseat_core.status import Status
 from kneeseat_core.typed import Bools, Floats, Ints, Pose
 from .chains import (ChainJob, ChainResult, cold_start, mean_change, prepare_worker,
                      run_chain, SoftTissue)
+from .executors import submitted_ahead
 from .scene import scene_bodies, SceneSpec
 
 __all__ = ['SweepResult', 'sweep', 'ribs_beside']
@@ -142,13 +147,17 @@ def sweep(config: KneeConfig, executor: Executor,
     for k, chain in enumerate(chains):
         for cell in chain.after:
             waiters.setdefault(cell, []).append(k)
+    # the chains listed first go first: those ready wait here, least index first, while
+    # the executor has as many as it can take (`submitted_ahead`)
     ready = [k for k, n in enumerate(missing) if n == 0]
+    heapq.heapify(ready)
+    ahead = submitted_ahead(executor)
     running: dict[Future[ChainResult], int] = {}
     preparing: Future[int] | None = None
     while ready or running:
-        for k in sorted(ready):           # the chains listed first go first
+        while ready and (ahead is None or len(running) < ahead):
+            k = heapq.heappop(ready)
             running[executor.submit(run_chain, run.job_for(chains[k]))] = k
-        ready.clear()
         if preparing is None:
             # the next worker of a pool gets ready while the first settles the centre
             # cells, which every other chain waits for (what it returns is not needed)
@@ -160,7 +169,7 @@ def sweep(config: KneeConfig, executor: Executor,
                 for k in waiters.pop(cell, ()):
                     missing[k] -= 1
                     if missing[k] == 0:
-                        ready.append(k)
+                        heapq.heappush(ready, k)
     assert not any(missing), 'a chain waited for a cell that no chain settles'
     return run.result(time.perf_counter() - started)
 
