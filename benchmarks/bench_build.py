@@ -9,7 +9,10 @@ so that its peak memory can be read from the kernel: `os.wait4` returns the reso
 usage of the build and of the worker processes it waited for, whose `ru_maxrss` is the
 peak resident set of the largest of them (not a sum). For each build it prints wall time
 (of the subprocess: start-up, meshes, sweep and the table write), the sweep's own wall time
-from the table's metadata, cells per second, collision checks per cell, converged cells,
+from the table's metadata (of it the bodies and their hierarchies built before any chain
+can start, and how busy the workers were after that: the chains' own times summed, over
+the workers times the rest of the sweep), cells per second, collision checks per cell,
+converged cells,
 and the peak RSS; with the machine (CPU model, count) and the load average before and after
 each build, because the 2 cores are shared with other engineers.
 Targets (full grid, 2 workers, wall): the total knee's table and the natural knee's in
@@ -19,6 +22,7 @@ where they stand).
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from pathlib import Path
 import shutil
@@ -69,6 +73,10 @@ def build(knee: str, workers: int, data: Path, grid: list[str], work: Path) -> d
     conv = np.asarray(table.converged)
     return {
         'knee': knee, 'workers': workers, 'wall_s': wall, 'sweep_s': summary['wall_s'],
+        # tables from before these were recorded have neither
+        'scene_s': summary.get('scene_s', math.nan),
+        'busy': summary.get('chains_s', math.nan)
+        / (workers * max(summary['wall_s'] - summary.get('scene_s', 0.0), 1e-9)),
         'cells': summary['cells'], 'cells_per_s': summary['cells'] / summary['wall_s'],
         'checks_per_cell': summary['collision_checks'] / summary['cells'],
         'converged': converged_share(int(conv.sum()), conv.size),
@@ -118,7 +126,8 @@ def main() -> int:
                     args.keep.mkdir(parents=True, exist_ok=True)
                     shutil.copy2(Path(tmp) / f'{knee}_{workers}.npz', args.keep)
                 print(f'{knee:18s} workers {workers}: wall {row["wall_s"]:6.1f} s (sweep '
-                      f'{row["sweep_s"]:.1f} s), {row["cells"]} cells, {row["cells_per_s"]:.1f}'
+                      f'{row["sweep_s"]:.1f} s: bodies {row["scene_s"]:.2f} s, then workers '
+                      f'{row["busy"]:.0%} busy), {row["cells"]} cells, {row["cells_per_s"]:.1f}'
                       f' cells/s, {row["checks_per_cell"]:.0f} checks/cell, converged '
                       f'{row["converged"]} ({row["per_body"]}), peak RSS '
                       f'{row["peak_rss_mb"]:.0f} MB, CPU {row["cpu_s"]:.0f} s; load '

@@ -47,6 +47,10 @@ def test_build_writes_a_verified_table(built: tuple[Path, Path],
     assert table.converged.all()
     meta = table.metadata
     assert meta['summary']['cells'] == 24 and meta['summary']['converged'] == 24
+    # the bodies built before the chains, and the chains' own times: parts of the sweep
+    summary = meta['summary']
+    assert 0.0 < summary['scene_s'] < summary['wall_s']
+    assert 0.0 < summary['chains_s'] <= summary['wall_s'] - summary['scene_s'] + 0.01
     assert meta['settle']['resolution_m'] == 1e-4 and meta['settle']['step_m'] == 1e-3
     assert meta['config']['resolved']['varus_deg'] == [-10.0, 0.0, 10.0]
     assert main(['info', str(table_path)]) == 0

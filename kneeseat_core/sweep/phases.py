@@ -89,6 +89,8 @@ class SweepResult:
     failures: tuple[str, ...] = field(default=())   # first few non-converged reasons
     travels: int = 0                # exact travels measured (of `collision_checks`)
     fcl_checks: int = 0             # python-fcl queries (of `collision_checks`)
+    scene_s: float = 0.0            # of `wall_s`, the bodies and hierarchies built first
+    chains_s: float = 0.0           # the chains' own times, summed over the workers
 
     @property
     def cells(self) -> int:
@@ -195,9 +197,12 @@ class _Sweep:
         nb, nf, nv = len(config.bodies), len(flex), len(var)
         groups = [tuple(str(m) for m in spec.meshes)
                   for spec in (config.reference, *config.bodies)]
+        started = time.perf_counter()
         self.scene = SceneSpec(groups[0], tuple(groups[1:]), config.units,
                                tuple(file_sha256(Path(p)) for g in groups for p in g))
         scene_bodies(self.scene, quiet=False)     # validated here; workers forked now have it
+        self.scene_s = time.perf_counter() - started
+        self.chains_s = 0.0
         self.f0 = int(np.argmin(np.abs(flex)))
         self.v0 = int(np.argmin(np.abs(var)))
         self.poses = np.zeros((nb, nf, nv, 4, 4))
@@ -359,6 +364,7 @@ class _Sweep:
         self.checks += res.collision_checks
         self.travels += res.travels
         self.fcl += res.fcl_checks
+        self.chains_s += res.elapsed_s
         if self.progress:                 # a copy across varus is cells of the table too
             self.progress(len(settled))
         return settled
@@ -369,4 +375,5 @@ class _Sweep:
                            quat_from_matrix(self.poses[..., :3, :3]), self.converged,
                            self.iterations, self.status, self.checks, wall_s,
                            self.scene.mesh_sha256, self.anchors, (self.f0, self.v0),
-                           self.backed, tuple(self.failures), self.travels, self.fcl)
+                           self.backed, tuple(self.failures), self.travels, self.fcl,
+                           self.scene_s, self.chains_s)

@@ -22,7 +22,9 @@ was measured from. Provenance, shown when present:
   parameters, grid in degrees), settle (the settle parameters), summary ({"cells",
   "converged", "wall_s", "collision_checks"}, the queries of all settles, and "travels"
   and "fcl_queries": how many of them were exact travels and python-fcl queries; tables
-  built before the exact travel have "ray_casts" instead), failures (the first
+  built before the exact travel have "ray_casts" instead; "scene_s", of "wall_s" the
+  bodies and their hierarchies built before any chain, and "chains_s", the chains' own
+  times summed over the workers, in tables built since they were recorded), failures (the first
   non-converged reasons),
   cells ({"status_names", "status"}: each cell's `kneeseat_core.status.Status` code),
   continuity (`kneeseat_core.sweep.continuity`), backed_out (per body: starts in collision).
