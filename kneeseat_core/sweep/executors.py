@@ -50,9 +50,9 @@ def submitted_ahead(executor: Executor) -> int | None:
     A pool takes what is submitted in turn: given every ready chain at once, it ran the
     default knee's patella spine, each segment queued behind the tibia's ribs, last and
     alone (in one run, 0.36 s of one idle worker at the end of a 6.3 s sweep; docs/design.md
-    gives the workers' idle time either way). None (every ready chain
-    at once) for other executors: one that runs a chain as it is submitted, or a Dask
-    cluster, whose workers may come and go."""
+    gives the workers' idle time either way). None (every ready chain at once) for other
+    executors: one that runs a chain as it is submitted, or a Dask cluster, whose workers
+    may come and go."""
     return executor.workers + 1 if isinstance(executor, LocalPool) else None
 
 
