@@ -13,7 +13,7 @@ from typing import NoReturn, TYPE_CHECKING
 
 __all__ = ['EXIT_OK', 'EXIT_ERROR', 'EXIT_BAD_INPUT', 'EXIT_NOT_CONVERGED',
            'EXIT_NO_CONTACT', 'OneLineParser', 'vector3', 'angles', 'join_negative_values',
-           'default_workers']
+           'default_workers', 'worker_count', 'MOST_WORKERS_PER_CORE']
 
 EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_NO_CONTACT = 0, 1, 2, 3, 4
 
@@ -78,3 +78,24 @@ def default_workers() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux
         return os.cpu_count() or 1
+
+
+# a local pool of more workers than this many a usable core only makes them contend (and a
+# mistyped count of thousands would fork as many processes at its first chain)
+MOST_WORKERS_PER_CORE = 4
+
+
+def worker_count(text: str) -> int:
+    """Parse a `--workers` value: a whole number from 1 to `MOST_WORKERS_PER_CORE` times the
+    cores this process may use; argparse reports failures as usage errors."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of worker "
+                                         'processes') from None
+    most = MOST_WORKERS_PER_CORE * default_workers()
+    if not 1 <= value <= most:
+        raise argparse.ArgumentTypeError(
+            f'{value} worker processes: give 1 to {most} ({MOST_WORKERS_PER_CORE} per core of '
+            f'the {default_workers()} this process may use)')
+    return value

@@ -231,3 +231,22 @@ def test_one_grid_override_keeps_the_other_axis_of_the_config(tmp_path: Path) ->
     config.write_text(config.read_text().replace('max_iterations: 500', 'max_iterations: 321'))
     patent = load_config(config, overrides={'settle': {'method': 'patent'}})
     assert patent.settle.method == 'patent' and patent.settle.max_iterations == 321
+
+
+@pytest.mark.parametrize('command', ['build', 'verify'])
+@pytest.mark.parametrize('workers,needle', [
+    ('0', 'give 1 to'), ('-2', 'give 1 to'), ('two', 'not a whole number'),
+    ('100000', 'per core'),
+])
+def test_a_worker_count_that_cannot_be_is_refused_before_anything_starts(
+        built: tuple[Path, Path], tmp_path: Path, command: str, workers: str, needle: str,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / 'out.npz'
+    argv = (['build', '--out', str(out), '--quiet', *GRID] if command == 'build'
+            else ['verify', str(built[0]), '--quiet'])
+    assert main([*argv, '--workers', workers]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
+    assert 'argument --workers: ' in lines[0] and needle in lines[0], lines[0]
+    assert captured.out == '' and not any(tmp_path.iterdir())     # nothing built or written

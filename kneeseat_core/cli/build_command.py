@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, TYPE_CHECKING
 
-from kneeseat_core.args import default_workers
+from kneeseat_core.args import default_workers, worker_count
 from kneeseat_core.errors import ConfigError
 from kneeseat_core.status import converged_share
 
@@ -113,7 +113,7 @@ def register_commands(sub: Subcommands) -> None:
                    'sharing one executor)')
     p.add_argument('--out', type=Path, required=True,
                    help='table file (.npz), or a directory when several configs are given')
-    p.add_argument('--workers', type=int, default=default_workers(),
+    p.add_argument('--workers', type=worker_count, default=default_workers(),
                    help=f'worker processes (default: all cores, here {default_workers()})')
     p.add_argument('--scheduler', metavar='tcp://HOST:PORT',
                    help='run the sweep on a Dask distributed cluster instead')

@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tqdm import tqdm
 
-from kneeseat_core.args import default_workers, EXIT_NOT_CONVERGED, EXIT_OK, vector3
+from kneeseat_core.args import (default_workers, EXIT_NOT_CONVERGED, EXIT_OK, vector3,
+                                worker_count)
 from kneeseat_core.errors import ConfigError, MeshError, NoContactError, TableError
 from kneeseat_core.params import SettleParams
 from kneeseat_core.status import AT_REST
@@ -173,7 +174,7 @@ def register_command(sub: Subcommands) -> None:
     p.add_argument('--changed-deg', type=float, default=0.15, metavar='DEG',
                    help='with --changed-from: a cell turned by more than this differs too '
                    '(default 0.15, about the arc of a resolution at 40 mm)')
-    p.add_argument('--workers', type=int, default=default_workers(),
+    p.add_argument('--workers', type=worker_count, default=default_workers(),
                    help=f'worker processes (default: all cores, here {default_workers()})')
     p.add_argument('--mesh-dir', type=Path, help="directory that holds the table's meshes")
     p.add_argument('--fixed', type=Path, help='one settle result: the fixed mesh')
