@@ -92,6 +92,7 @@ def write_table(path: Path, table: PoseTable) -> None:
 
 
 _CORRUPT = (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError)
+_ZIP_MAGIC, _NPY_MAGIC = b'PK', b'\x93NUMPY'
 
 
 def read_table(path: Path, meshes: dict[str, Any] | None = None) -> PoseTable:
@@ -150,13 +151,23 @@ def _load(path: Path, where: str) -> tuple[Any, dict[str, np.ndarray]]:
     if not path.is_file():
         raise TableError(f'{where} is not a regular file; give the path of a .npz table')
     try:
-        npz = np.load(path, allow_pickle=False)
+        with open(path, 'rb') as fh:
+            head = fh.read(len(_NPY_MAGIC))
+        # numpy takes any file that is neither a zip nor an .npy for a pickle, which it
+        # refuses with advice to unpickle it: the wrong advice for a text file
+        problem = (None if head.startswith((_ZIP_MAGIC, _NPY_MAGIC))
+                   else 'it is empty' if not head
+                   else 'it does not start as a zip archive or an .npy array does')
+        if problem is None:
+            npz = np.load(path, allow_pickle=False)
     except PermissionError:
         raise TableError(f'{where} cannot be read (permission denied); check its '
                          'permissions') from None
     except _CORRUPT as err:
-        raise TableError(f'{where} is not a readable table (.npz): {err}; it is truncated, '
-                         f'corrupt or another kind of file; {REBUILD}') from None
+        problem = str(err)
+    if problem is not None:
+        raise TableError(f'{where} is not a readable table (.npz): {problem}; it is '
+                         f'truncated, corrupt or another kind of file; {REBUILD}')
     if not isinstance(npz, np.lib.npyio.NpzFile):
         raise TableError(f'{where} holds a single array, not a table (.npz); {REBUILD}')
     with npz:
