@@ -16,9 +16,10 @@ import hashlib
 import os
 from pathlib import Path
 import secrets
+import tempfile
 from typing import BinaryIO
 
-__all__ = ['atomic_write', 'write_bytes', 'file_sha256']
+__all__ = ['atomic_write', 'write_bytes', 'file_sha256', 'unwritable']
 
 
 def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
@@ -79,3 +80,26 @@ def file_sha256(path: Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b''):
             h.update(chunk)
     return h.hexdigest()
+
+
+def unwritable(path: Path) -> str | None:
+    """Why no file can be written at `path`, or None: it is a directory, its directory
+    cannot be made (it is made here where missing, as a write would need it), or no file
+    can be created there (tried with an empty temporary file, removed at once). Asked
+    before long work whose end is that file."""
+    path = Path(path)
+    if path.is_dir():
+        return 'it is a directory'
+    for parent in path.parents:     # the nearest that exists must be a directory
+        if parent.exists():
+            if not parent.is_dir():
+                return f'{parent} is not a directory'
+            break
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.probe', dir=path.parent)
+    except OSError as err:
+        return err.strerror or str(err)
+    os.close(fd)
+    os.unlink(probe)
+    return None

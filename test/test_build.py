@@ -250,3 +250,47 @@ def test_a_worker_count_that_cannot_be_is_refused_before_anything_starts(
     assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
     assert 'argument --workers: ' in lines[0] and needle in lines[0], lines[0]
     assert captured.out == '' and not any(tmp_path.iterdir())     # nothing built or written
+
+
+@pytest.mark.parametrize('options,needle', [
+    (['--sample', '0'], '--sample 0: give a positive number of cells'),
+    (['--sample', '5', '--seed', '-1'], '--seed -1: give a seed of 0 or more'),
+    (['--changed-from', 'SELF', '--changed-deg', 'nan'], '--changed-deg nan: give an angle'),
+])
+def test_verify_refuses_bad_options_in_one_line(built: tuple[Path, Path], options: list[str],
+                                                needle: str,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    options = [str(built[0]) if o == 'SELF' else o for o in options]
+    assert main(['verify', str(built[0]), '--quiet', *options]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
+    assert needle in lines[0], lines[0]
+
+
+@pytest.mark.parametrize('command', ['build', 'synth'])
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(
+        tmp_path: Path, command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('not a directory')
+    if command == 'build':
+        argv = ['build', '--out', str(blocker / 'knee.npz'), '--quiet', *GRID]
+        needle = f'--out {blocker / "knee.npz"}: cannot write a table there ({blocker} is not'
+    else:
+        argv = ['synth', '--out', str(blocker)]
+        needle = f'--out {blocker}: cannot write the default knee there (it is a file)'
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
+    assert needle in lines[0], lines[0]
+    assert captured.out == '' and blocker.read_text() == 'not a directory'
+    assert [p.name for p in tmp_path.iterdir()] == ['a_file']
+
+
+def test_build_refuses_a_directory_for_the_table_before_the_sweep(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['build', '--out', str(tmp_path), '--quiet', *GRID]) == 2
+    err = capsys.readouterr().err
+    assert f'--out {tmp_path}: cannot write a table there (it is a directory)' in err, err
+    assert not any(tmp_path.iterdir())

@@ -8,7 +8,7 @@ from typing import BinaryIO
 import pytest
 
 from kneeseat_core.knee import materialise_default_knee
-from kneeseat_core.files import atomic_write, file_sha256, write_bytes
+from kneeseat_core.files import atomic_write, file_sha256, unwritable, write_bytes
 
 
 def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path: Path) -> None:
@@ -59,3 +59,14 @@ def test_default_knee_written_twice_into_one_directory(tmp_path: Path) -> None:
     assert again == first and again.read_text() == text
     assert again.stat().st_mtime_ns == mtime               # same bytes: left untouched
     assert not [p for p in tmp_path.iterdir() if p.name.endswith('.tmp')]
+
+
+def test_unwritable_says_why_and_leaves_only_the_directories_a_write_needs(
+        tmp_path: Path) -> None:
+    (tmp_path / 'a_file').write_text('x')
+    assert unwritable(tmp_path) == 'it is a directory'
+    assert unwritable(tmp_path / 'a_file' / 'deeper' / 't.npz') == \
+        f'{tmp_path / "a_file"} is not a directory'
+    assert unwritable(tmp_path / 'a_file') is None            # a file there is replaced
+    assert unwritable(tmp_path / 'new' / 'dir' / 't.npz') is None
+    assert sorted(p.name for p in tmp_path.rglob('*')) == ['a_file', 'dir', 'new']

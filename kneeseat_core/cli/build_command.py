@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, TYPE_CHECKING
 
 from kneeseat_core.args import default_workers, worker_count
-from kneeseat_core.errors import ConfigError
+from kneeseat_core.errors import ConfigError, TableError
+from kneeseat_core.files import unwritable
 from kneeseat_core.status import converged_share
 
 if TYPE_CHECKING:
@@ -58,9 +59,11 @@ def _cmd_build(args: argparse.Namespace) -> int:
         if args.method is not None:
             overrides['settle'] = {'method': args.method}
         loaded.append(load_config(cfg_path, mesh_dir, overrides or None))
-    for out in outs:
-        if not out.parent.is_dir():
-            out.parent.mkdir(parents=True, exist_ok=True)
+    for out in outs:        # before the sweep, not after it
+        why = unwritable(out)
+        if why is not None:
+            raise TableError(f'--out {out}: cannot write a table there ({why}); give a file '
+                             'path in a writable directory')
     executor, close = executor_for(args.workers, args.scheduler)
     cells = converged = 0
     wall_s = 0.0
@@ -99,7 +102,12 @@ def _grid_arg(text: str) -> list[float]:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from kneeseat_core.knee import materialise_default_knee     # trimesh
+    from kneeseat_core.knee import DEFAULT_CONFIG, materialise_default_knee     # trimesh
+    why = 'it is a file' if args.out.exists() and not args.out.is_dir() \
+        else unwritable(args.out / DEFAULT_CONFIG)
+    if why is not None:
+        raise ConfigError(f'--out {args.out}: cannot write the default knee there ({why}); '
+                          'give a directory that can be written or made')
     config = materialise_default_knee(args.out)
     print(f'wrote the default knee to {args.out} (meshes and {config.name})')
     return 0

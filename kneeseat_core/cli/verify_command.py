@@ -54,6 +54,8 @@ def _verify_table_cmd(args: argparse.Namespace) -> int:
         raise TableError('give either a TABLE or --fixed/--moving/--pose, not both')
     if args.sample is not None and args.sample < 1:
         raise TableError(f'--sample {args.sample}: give a positive number of cells')
+    if args.seed < 0:
+        raise TableError(f'--seed {args.seed}: give a seed of 0 or more')
     if args.sample is not None and args.changed_from is not None:
         raise TableError('give --sample or --changed-from, not both')
     if not (args.changed_deg >= 0.0):
