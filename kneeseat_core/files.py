@@ -19,7 +19,7 @@ import secrets
 import tempfile
 from typing import BinaryIO
 
-__all__ = ['atomic_write', 'write_bytes', 'file_sha256', 'unwritable']
+__all__ = ['atomic_write', 'write_bytes', 'file_sha256', 'unwritable', 'unwritable_directory']
 
 
 def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
@@ -103,3 +103,12 @@ def unwritable(path: Path) -> str | None:
     os.close(fd)
     os.unlink(probe)
     return None
+
+
+def unwritable_directory(path: Path) -> str | None:
+    """Why no file can be written into the directory `path`, or None (`unwritable`: it is
+    made here where missing)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        return 'it is a file'
+    return unwritable(path / '.kneeseat')

@@ -8,7 +8,8 @@ from typing import BinaryIO
 import pytest
 
 from kneeseat_core.knee import materialise_default_knee
-from kneeseat_core.files import atomic_write, file_sha256, unwritable, write_bytes
+from kneeseat_core.files import (atomic_write, file_sha256, unwritable, unwritable_directory,
+                                 write_bytes)
 
 
 def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path: Path) -> None:
@@ -70,3 +71,7 @@ def test_unwritable_says_why_and_leaves_only_the_directories_a_write_needs(
     assert unwritable(tmp_path / 'a_file') is None            # a file there is replaced
     assert unwritable(tmp_path / 'new' / 'dir' / 't.npz') is None
     assert sorted(p.name for p in tmp_path.rglob('*')) == ['a_file', 'dir', 'new']
+    assert unwritable_directory(tmp_path / 'a_file') == 'it is a file'
+    made = tmp_path / 'new' / 'made'
+    assert unwritable_directory(made) is None
+    assert made.is_dir() and not any(made.iterdir())

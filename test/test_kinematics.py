@@ -209,3 +209,16 @@ def test_plot_draws_other_tables(tmp_path: Path) -> None:
     gap = pixels_near(plot_kinematics(kin, tmp_path / 'gap.png', title='t',
                                       others={'other': gappy}), orange)
     assert alone == 0 < gap < 0.9 * full         # the tibial lines break at 45 deg
+
+
+def test_kinematics_refuses_an_output_directory_under_a_file_before_the_work(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('not a directory')
+    code = main(['kinematics', str(tmp_path / 'no_table.npz'), '--out-dir',
+                 str(blocker / 'k')])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1 and 'Traceback' not in err, err
+    assert f'--out-dir {blocker / "k"}: cannot write the kinematics there ({blocker} is not ' \
+        'a directory)' in err, err
+    assert [p.name for p in tmp_path.iterdir()] == ['a_file']

@@ -16,7 +16,7 @@ from typing import Any, Callable, Iterator, TYPE_CHECKING
 
 from kneeseat_core.args import default_workers, worker_count
 from kneeseat_core.errors import ConfigError, TableError
-from kneeseat_core.files import unwritable
+from kneeseat_core.files import unwritable, unwritable_directory
 from kneeseat_core.status import converged_share
 
 if TYPE_CHECKING:
@@ -102,9 +102,8 @@ def _grid_arg(text: str) -> list[float]:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from kneeseat_core.knee import DEFAULT_CONFIG, materialise_default_knee     # trimesh
-    why = 'it is a file' if args.out.exists() and not args.out.is_dir() \
-        else unwritable(args.out / DEFAULT_CONFIG)
+    from kneeseat_core.knee import materialise_default_knee     # trimesh
+    why = unwritable_directory(args.out)
     if why is not None:
         raise ConfigError(f'--out {args.out}: cannot write the default knee there ({why}); '
                           'give a directory that can be written or made')

@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kneeseat_core.args import angles, EXIT_OK, vector3
+from kneeseat_core.errors import ConfigError
+from kneeseat_core.files import unwritable_directory
 from kneeseat_core.geometry import KneeAxes, matrix_from_quat
 from kneeseat_core.table import (describe, display_paths, export_csv, lookup_json, mesh_entries,
                                  PoseTable, read_table, status_map, write_text)
@@ -100,6 +102,10 @@ def _cmd_kinematics(args: argparse.Namespace) -> int:
     from kneeseat_core.report import (DEFAULT_ANGLES_DEG, kinematics_markdown,  # matplotlib
                                       knee_kinematics, plot_kinematics, read_reference,
                                       table_landmarks, write_kinematics_csv)
+    why = unwritable_directory(args.out_dir)
+    if why is not None:
+        raise ConfigError(f'--out-dir {args.out_dir}: cannot write the kinematics there '
+                          f'({why}); give a directory that can be written or made')
     table = read_table(args.table)
     names = dict(tibia=args.tibia, patella=args.patella)
     marks = table_landmarks(table, side=args.side, tibia_point=args.tibia_point,
@@ -108,7 +114,6 @@ def _cmd_kinematics(args: argparse.Namespace) -> int:
     every = knee_kinematics(table, marks, side=args.side, **names)
     chosen = knee_kinematics(table, marks, angles_deg=angles, side=args.side, **names)
     reference = read_reference(args.reference) if args.reference else []
-    args.out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = write_kinematics_csv(every, args.out_dir / 'kinematics.csv')
     md_path = write_text(args.out_dir / 'kinematics.md', kinematics_markdown(chosen))
     name = str(table.metadata.get('name') or args.table.stem)

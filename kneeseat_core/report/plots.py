@@ -34,7 +34,7 @@ from matplotlib.patches import Patch, Rectangle
 import numpy as np
 
 from kneeseat_core.errors import ConfigError
-from kneeseat_core.files import atomic_write
+from kneeseat_core.files import atomic_write, unwritable
 from kneeseat_core.geometry import matrix_from_quat, TOL
 from kneeseat_core.status import converged_share, Status, STATUS_NAMES
 from kneeseat_core.table import mesh_entries, PoseTable
@@ -334,7 +334,7 @@ def write_png(fig: Figure, out: Path, text: dict[str, str] | None = None) -> Pat
         out.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(out, save)
     except OSError as err:
-        reason = err.strerror or type(err).__name__
+        reason = unwritable(out) or err.strerror or type(err).__name__
         raise ConfigError(f'cannot write picture {str(out)!r}: {reason}; '
                           'choose a writable path ending in .png') from None
     return out
