@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 import json
 from pathlib import Path
+import re
 import shutil
 import zipfile
 
@@ -18,7 +19,7 @@ import pytest
 
 from kneeseat_core.knee import materialise_default_knee
 from kneeseat_core.cli import main
-from kneeseat_core.errors import TableError
+from kneeseat_core.errors import ConfigError, TableError
 from kneeseat_core.table import read_table
 
 GRID = ('--flexion-grid', '0,-90,30', '--varus-grid', '-10,10,10')
@@ -294,3 +295,22 @@ def test_build_refuses_a_directory_for_the_table_before_the_sweep(
     err = capsys.readouterr().err
     assert f'--out {tmp_path}: cannot write a table there (it is a directory)' in err, err
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize('setting,needle', [
+    ('max_iterations: 12.5', 'settle.max_iterations must be a whole number, got 12.5'),
+    ('max_iterations: 1e3x', "settle.max_iterations must be a whole number, got '1e3x'"),
+    ('max_iterations: true', 'settle.max_iterations must be a whole number, got True'),
+    ('max_iterations: [5]', 'settle.max_iterations must be a whole number, got [5]'),
+    ('max_iterations: 40.0', None),
+])
+def test_a_settle_setting_that_is_not_a_number_is_named(tmp_path: Path, setting: str,
+                                                        needle: str | None) -> None:
+    from kneeseat_core.knee import load_config
+    config = materialise_default_knee(tmp_path)
+    config.write_text(config.read_text().replace('max_iterations: 500', setting))
+    if needle is None:
+        assert load_config(config).settle.max_iterations == 40
+        return
+    with pytest.raises(ConfigError, match=re.escape(needle)):
+        load_config(config)

@@ -430,26 +430,46 @@ def _envelope(data: Any, where: str) -> tuple[float, float]:
 _DEFAULTS = SettleParams()
 
 
+def _settle_number(data: dict[str, Any], key: str, whole: bool = False) -> float | None:
+    """`settle.key` of the config as a number (a whole one where `whole`), or None where
+    it is absent or null."""
+    value = data.get(key)
+    if value is None:
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(value, bool) or math.isnan(number) or (whole and not number.is_integer()):
+        raise ConfigError(f'settle.{key} must be a {"whole " if whole else ""}number, got '
+                          f'{value!r}')
+    return number
+
+
 def _settle_params(data: Any) -> SettleParams:
     if isinstance(data, dict) and 'travel' in data:
         raise ConfigError('settle: travel is no longer a setting (the default method measures '
                           'the travel exactly); remove the key')
     _check_keys(data, _SETTLE_KEYS, 'settle', set())
-    try:
-        params = SettleParams(
-            step_m=float(data.get('step_m', _DEFAULTS.step_m)),
-            resolution_m=float(data.get('resolution_m', _DEFAULTS.resolution_m)),
-            rotation_step_rad=(None if data.get('rotation_step_deg') is None
-                               else math.radians(float(data['rotation_step_deg']))),
-            rotation_resolution_rad=(None if data.get('rotation_resolution_deg') is None
-                                     else math.radians(float(data['rotation_resolution_deg']))),
-            max_iterations=int(data.get('max_iterations', _DEFAULTS.max_iterations)),
-            max_slide_m=float(data.get('max_slide_m', _DEFAULTS.max_slide_m)),
-            max_spin_rad=(_DEFAULTS.max_spin_rad if data.get('max_spin_deg') is None
-                          else math.radians(float(data['max_spin_deg']))),
-            method=data.get('method', _DEFAULTS.method))
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f'settle: {err}') from None
+
+    def number(key: str, default: float, whole: bool = False) -> float:
+        value = _settle_number(data, key, whole)
+        return default if value is None else value
+
+    def angle(key: str) -> float | None:
+        degrees = _settle_number(data, key)
+        return None if degrees is None else math.radians(degrees)
+
+    spin = angle('max_spin_deg')
+    params = SettleParams(
+        step_m=number('step_m', _DEFAULTS.step_m),
+        resolution_m=number('resolution_m', _DEFAULTS.resolution_m),
+        rotation_step_rad=angle('rotation_step_deg'),
+        rotation_resolution_rad=angle('rotation_resolution_deg'),
+        max_iterations=int(number('max_iterations', _DEFAULTS.max_iterations, whole=True)),
+        max_slide_m=number('max_slide_m', _DEFAULTS.max_slide_m),
+        max_spin_rad=_DEFAULTS.max_spin_rad if spin is None else spin,
+        method=data.get('method', _DEFAULTS.method))
     try:
         params.check()
     except SettleError as err:  # re-label as a config problem
