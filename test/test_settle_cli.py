@@ -246,3 +246,13 @@ def test_sliding_off_the_edge_is_not_converged(scene: dict[str, Path],
     data = json.loads(out)
     assert data['converged'] is False and data['reason']
     assert err == ''
+
+
+def test_a_mesh_far_beyond_any_bone_is_named_as_such(scene: dict[str, Path], tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    far = tmp_path / 'far.stl'
+    far.write_text('solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1e300 0 0\n'
+                   'vertex 0 1e300 0\nendloop\nendfacet\nendsolid t\n')
+    code, _, err = run(['--fixed', str(far), '--moving', str(scene['moving'])], capsys)
+    assert code == 2
+    assert_one_line_error(err, str(far), 'reaches 1e+300, far beyond any bone')

@@ -24,6 +24,9 @@ UNIT_SCALE: dict[str, float] = {'m': 1.0, 'mm': 1e-3}
 
 # A bone or implant is millimetres to decimetres across; outside this the units are wrong.
 _PLAUSIBLE_EXTENT_M = (1e-3, 1.0)
+# no coordinate of a mesh of any body, in metres or millimetres, comes near this; the
+# squares and products a mesh's areas and normals take stay finite below it
+_FARTHEST = 1e9
 _WARNED_OPEN: set[str] = set()      # meshes already reported as not watertight
 
 
@@ -102,6 +105,10 @@ def check_mesh(mesh: trimesh.Trimesh, name: str, units: Units = 'm',
     if not np.all(np.isfinite(mesh.vertices)):
         raise MeshError(f'{name}: mesh has NaN or infinite vertex coordinates; '
                         'repair or re-export it')
+    reach = float(np.abs(mesh.vertices).max())
+    if reach > _FARTHEST:       # products of such coordinates overflow: nothing is measured
+        raise MeshError(f'{name}: a vertex coordinate reaches {reach:.3g}, far beyond any bone '
+                        'in metres or millimetres; repair or re-export it')
     mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)   # merge vertices
     keep = mesh.nondegenerate_faces() & mesh.unique_faces()
     dropped = int(len(keep) - keep.sum())
