@@ -52,8 +52,10 @@ def load_mesh(path: Path | str, units: Units = 'm', quiet: bool = False) -> trim
         raise MeshError(f'{path}: no such mesh file; check the path')
     try:
         # process=False: trimesh's processing drops faces with NaN vertices, which would
-        # hide a broken file; check_mesh validates first, then merges vertices
-        loaded = trimesh.load(str(path), force='mesh', process=False)
+        # hide a broken file; check_mesh validates first, then merges vertices (and says
+        # what is wrong with coordinates whose normals the loader's arithmetic overflows)
+        with np.errstate(over='ignore', invalid='ignore'):
+            loaded = trimesh.load(str(path), force='mesh', process=False)
     except Exception as err:  # trimesh raises many types for a bad file
         raise MeshError(f'{path}: not a readable mesh ({type(err).__name__}: {err}); '
                         'give an STL, PLY, OBJ, OFF or GLB file') from None
